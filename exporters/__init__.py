@@ -1,0 +1,1 @@
+"""Exporters: one module per file format, registered by suffix; import as papl_mapper.exporters."""

@@ -1,0 +1,1 @@
+"""axes stage of papl-mapper."""

@@ -1,0 +1,65 @@
+"""The `papl-map` command line. The only place that turns PaplError into one line and an exit code.
+
+Each command lives in its own module `papl_mapper.cli.<name>` exposing `add_parser(subparsers)`,
+which registers the sub-command and sets `func(args) -> int` on it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from papl_mapper import __version__
+from papl_mapper.errors import PaplError
+
+#: Sub-command modules, in the order `--help` lists them.
+COMMANDS = ("info",)
+
+log = logging.getLogger("papl_mapper")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="papl-map",
+        description="Principal-axis-anchored point-line mapping of recorded walkthroughs.",
+    )
+    parser.add_argument("--version", action="version", version=f"papl-mapper {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        importlib.import_module(f"papl_mapper.cli.{name}").add_parser(sub)
+    return parser
+
+
+def _configure_logging(debug: bool, quiet: bool) -> None:
+    level = logging.DEBUG if debug else logging.WARNING if quiet else logging.INFO
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s" if debug else "%(message)s"))
+    root = logging.getLogger("papl_mapper")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _configure_logging(args.debug, args.quiet)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except PaplError as exc:
+        if args.debug:
+            raise
+        print(f"papl-map {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"papl-map {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0

@@ -1,0 +1,44 @@
+"""Typed errors of papl-mapper. Library code raises these; only the CLI turns them into one line.
+
+Every message names the file or object at fault and, where possible, what to do next.
+"""
+
+from __future__ import annotations
+
+
+class PaplError(Exception):
+    """Base of every error papl-mapper raises on purpose."""
+
+    exit_code = 1
+
+
+class InputError(PaplError):
+    """A user-supplied file or argument is missing, unreadable or malformed."""
+
+    exit_code = 2
+
+
+class MapFormatError(InputError):
+    """A map file is corrupt, truncated, of another version, or holds invalid values."""
+
+
+class ConfigError(InputError):
+    """A configuration file or --set override names an unknown key or holds a bad value."""
+
+
+class GeometryError(PaplError):
+    """Degenerate geometry: a line parallel to the viewing ray, a zero-length segment, and the like."""
+
+    exit_code = 3
+
+
+class OptimizationError(PaplError):
+    """An optimiser failed or produced non-finite values."""
+
+    exit_code = 3
+
+
+class BackendUnavailableError(PaplError):
+    """A system facility (an off-screen renderer, a codec, an external tool) is not installed."""
+
+    exit_code = 4

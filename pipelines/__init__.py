@@ -1,0 +1,1 @@
+"""Pipelines: short recipes chaining the stages; import as papl_mapper.pipelines."""

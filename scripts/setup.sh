@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# Idempotent set-up for a fresh Debian machine (root, no screen, registries only):
+# system libraries, the .venv with the project and its dev extras, and the glTF validator.
+# A second run with nothing missing only checks and returns in seconds.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libgomp1 libosmesa6 libxrender1 libxext6 nodejs npm)
+missing=()
+for pkg in "${SYSTEM_PACKAGES[@]}"; do
+    if ! dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed"; then
+        # npm may come with a nodejs that is not Debian's (e.g. a preinstalled Node.js).
+        if [[ "$pkg" == nodejs || "$pkg" == npm ]] && command -v "${pkg/nodejs/node}" >/dev/null; then
+            continue
+        fi
+        missing+=("$pkg")
+    fi
+done
+if ((${#missing[@]})); then
+    echo "setup: installing system packages: ${missing[*]}"
+    SUDO=""; [[ $(id -u) -ne 0 ]] && SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+PYTHON=${PYTHON:-python3.11}
+command -v "$PYTHON" >/dev/null || PYTHON=python3
+if [[ ! -x .venv/bin/python ]]; then
+    echo "setup: creating .venv with $PYTHON"
+    "$PYTHON" -m venv .venv
+fi
+
+stamp=.venv/.papl-installed
+want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+if [[ ! -f $stamp || "$(cat "$stamp")" != "$want" ]]; then
+    echo "setup: installing papl-mapper and its dependencies into .venv"
+    .venv/bin/python -m pip install -q --upgrade pip
+    .venv/bin/python -m pip install -q -e ".[dev]"
+    echo "$want" > "$stamp"
+fi
+
+if [[ ! -x .tools/node_modules/.bin/gltf-validator && ! -f .tools/node_modules/gltf-validator/package.json ]]; then
+    echo "setup: installing the Khronos glTF validator (npm gltf-validator) into .tools/"
+    mkdir -p .tools
+    npm install --silent --no-audit --no-fund --prefix .tools gltf-validator@2 >/dev/null
+fi

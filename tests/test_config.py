@@ -1,0 +1,63 @@
+"""Typed config loading: TOML, overrides, clear errors for unknown keys and bad values."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import pytest
+
+from papl_mapper.config import config_to_dict, dump_toml, load_config
+from papl_mapper.errors import ConfigError
+
+
+@dataclass
+class Inner:
+    tau: float = 2.0
+    """a threshold"""
+    mode: str = "soft"
+
+
+@dataclass
+class Outer:
+    seed: int = 0
+    verbose: bool = False
+    inner: Inner = field(default_factory=Inner)
+    sizes: tuple[int, ...] = (1, 2)
+
+
+def test_defaults_file_and_overrides(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text("seed = 4\n[inner]\ntau = 3.5\n")
+    c = load_config(Outer, f, ["inner.mode=hard", "verbose=true", "sizes=3,4"])
+    assert (c.seed, c.inner.tau, c.inner.mode, c.verbose, c.sizes) == (4, 3.5, "hard", True, (3, 4))
+
+
+def test_round_trip_through_toml(tmp_path):
+    c = load_config(Outer, None, ["inner.tau=7.25", "seed=9"])
+    f = tmp_path / "out.toml"
+    f.write_text(dump_toml(config_to_dict(c)))
+    assert load_config(Outer, f) == c
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("nope=1", "unknown config key 'nope'"),
+        ("inner.tau=abc", "expected float"),
+        ("seed=1.5", "expected int"),
+        ("verbose=maybe", "true or false"),
+        ("seed", "key=value"),
+    ],
+)
+def test_bad_overrides(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(Outer, None, [override])
+
+
+def test_bad_file(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text("seed = [unclosed")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(Outer, f)
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(Outer, tmp_path / "none.toml")
