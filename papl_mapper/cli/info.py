@@ -26,7 +26,8 @@ def run(args: argparse.Namespace) -> int:
     cam = m.camera
     print(f"map            {args.map}")
     print(
-        f"camera         {cam.width}x{cam.height}  fx={cam.fx:.2f} fy={cam.fy:.2f} cx={cam.cx:.2f} cy={cam.cy:.2f}"
+        f"camera         {cam.width}x{cam.height}  "
+        f"fx={cam.fx:.2f} fy={cam.fy:.2f} cx={cam.cx:.2f} cy={cam.cy:.2f}"
     )
     print(f"keyframes      {s['keyframes']}")
     if "trajectory_length" in s:
