@@ -42,5 +42,5 @@ fi
 if [[ ! -x .tools/node_modules/.bin/gltf-validator && ! -f .tools/node_modules/gltf-validator/package.json ]]; then
     echo "setup: installing the Khronos glTF validator (npm gltf-validator) into .tools/"
     mkdir -p .tools
-    npm install --silent --no-audit --no-fund --prefix .tools gltf-validator@2 >/dev/null
+    npm install --silent --no-audit --no-fund --prefix .tools gltf-validator@2.0.0-dev.3.10 >/dev/null
 fi
