@@ -1,0 +1,69 @@
+"""The mapping stage's input: 2D observations of a recording with persistent track ids.
+
+The frontend produces these from images; tests and benchmarks produce them by projecting a
+known scene. Everything is undistorted pixels in the OpenCV convention, struct-of-arrays,
+one row per observation, so mapping never touches images.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from papl_mapper.map import Camera
+
+
+@dataclass
+class Tracks:
+    """Per-frame point and segment observations of one recording, keyed by frame and track id.
+
+    `vp_dirs_c[f]` holds up to V camera-frame vanishing directions of frame f (NaN rows where
+    fewer were found); `line_vp` is the index of the direction a segment was classified to in
+    its frame, or -1 for non-structural segments.
+    """
+
+    camera: Camera  # undistorted pinhole camera of the observations
+    frame_index: np.ndarray  # (F,) int64, index of the frame in the recording
+    timestamp: np.ndarray  # (F,) float64 seconds
+    is_keyframe: np.ndarray  # (F,) bool, the frontend's keyframe choice
+    point_frame: np.ndarray  # (Kp,) int64, row into the frame arrays
+    point_track: np.ndarray  # (Kp,) int64, persistent point track id
+    point_uv: np.ndarray  # (Kp, 2) float64 pixels
+    line_frame: np.ndarray  # (Kl,) int64
+    line_track: np.ndarray  # (Kl,) int64, persistent segment track id
+    line_xy: np.ndarray  # (Kl, 4) float64 pixels x1 y1 x2 y2
+    line_vp: np.ndarray  # (Kl,) int64, index into vp_dirs_c[frame] or -1
+    vp_dirs_c: np.ndarray  # (F, V, 3) float64, NaN where absent
+    vertical_vp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (F,) or empty
+
+    def __len__(self) -> int:
+        return len(self.frame_index)
+
+    def validate(self) -> None:
+        """Check lengths and ranges; raise ValueError naming the first inconsistent array."""
+        n = len(self.frame_index)
+        for name in ("timestamp", "is_keyframe", "vp_dirs_c"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"Tracks.{name} has {len(getattr(self, name))} rows for {n} frames")
+        for prefix, extra in (("point", ("uv",)), ("line", ("xy", "vp"))):
+            k = len(getattr(self, f"{prefix}_frame"))
+            for suffix in ("track", *extra):
+                arr = getattr(self, f"{prefix}_{suffix}")
+                if len(arr) != k:
+                    raise ValueError(f"Tracks.{prefix}_{suffix} has {len(arr)} rows, expected {k}")
+            frames = getattr(self, f"{prefix}_frame")
+            if k and (frames.min() < 0 or frames.max() >= n):
+                raise ValueError(f"Tracks.{prefix}_frame refers to frames outside 0..{n - 1}")
+        if not np.isfinite(self.point_uv).all() or not np.isfinite(self.line_xy).all():
+            raise ValueError("Tracks hold non-finite pixel coordinates")
+
+    def points_in(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """Track ids (K,) and pixels (K, 2) of the points seen in one frame."""
+        sel = self.point_frame == frame
+        return self.point_track[sel], self.point_uv[sel]
+
+    def lines_in(self, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Track ids (K,), endpoints (K, 4) and VP labels (K,) of the segments seen in one frame."""
+        sel = self.line_frame == frame
+        return self.line_track[sel], self.line_xy[sel], self.line_vp[sel]

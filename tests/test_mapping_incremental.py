@@ -1,0 +1,112 @@
+"""Incremental registration on tracks projected from a known scene: poses match up to Sim(3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from papl_mapper.map import Camera
+from papl_mapper.mapping.incremental import register_keyframes, triangulate_multiview
+from papl_mapper.mapping.tracks import Tracks
+
+CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
+MAX_REL_POSITION_ERR = 0.02  # of the path length, after Sim(3) alignment
+
+
+def _look_T_cw(centre: np.ndarray, yaw: float) -> np.ndarray:
+    """Camera at `centre` looking along yaw in the world XY plane, world +Z up."""
+    fwd = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    down = np.array([0.0, 0.0, -1.0])
+    right = np.cross(down, fwd)
+    R_wc = np.column_stack([right, down, fwd])
+    T = np.eye(4)
+    T[:3, :3] = R_wc.T
+    T[:3, 3] = -R_wc.T @ centre
+    return T
+
+
+def make_tracks(n_frames=60, noise_px=0.0, seed=0):
+    """A room of random points, a camera walking and turning slowly: every frame a keyframe."""
+    rng = np.random.default_rng(seed)
+    pts = np.column_stack([rng.uniform(-6, 6, 3000), rng.uniform(-6, 6, 3000), rng.uniform(-1.5, 1.5, 3000)])
+    pts = pts[np.abs(pts[:, :2]).max(axis=1) > 3.0]  # points on the outer part of the room
+    t = np.arange(n_frames) / n_frames
+    centres = np.column_stack([1.5 * np.cos(2 * t), 1.5 * np.sin(2 * t), 0.05 * np.sin(9 * t)])
+    yaws = 2 * t + 0.3
+    T_cw = np.stack([_look_T_cw(c, y) for c, y in zip(centres, yaws, strict=True)])
+    pf, pt, puv = [], [], []
+    for f, T in enumerate(T_cw):
+        Xc = pts @ T[:3, :3].T + T[:3, 3]
+        uv = Xc @ CAM.K.T
+        uv = uv[:, :2] / uv[:, 2:3]
+        vis = (Xc[:, 2] > 0.3) & (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+        idx = np.flatnonzero(vis)
+        pf.append(np.full(len(idx), f))
+        pt.append(idx)
+        puv.append(uv[idx] + rng.normal(0, noise_px, (len(idx), 2)))
+    n = n_frames
+    tracks = Tracks(
+        CAM,
+        np.arange(n),
+        np.arange(n) / 10.0,
+        np.ones(n, bool),
+        np.concatenate(pf),
+        np.concatenate(pt),
+        np.concatenate(puv),
+        np.zeros(0, np.int64),
+        np.zeros(0, np.int64),
+        np.zeros((0, 4)),
+        np.zeros(0, np.int64),
+        np.full((n, 3, 3), np.nan),
+    )
+    return tracks, T_cw, pts
+
+
+def _umeyama_sim3(src, dst):
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    S, D = src - mu_s, dst - mu_d
+    U, sig, Vt = np.linalg.svd(D.T @ S / len(src))
+    E = np.eye(3)
+    E[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ E @ Vt
+    s = np.trace(np.diag(sig) @ E) / S.var(0).sum()
+    return s, R, mu_d - s * R @ mu_s
+
+
+def test_triangulate_multiview_exact():
+    rng = np.random.default_rng(0)
+    T = np.stack([_look_T_cw(np.array([x, 0, 0]), 0.1) for x in (0, 0.5, 1.0)])
+    X = np.array([6.0, 1.0, 0.5])
+    uv = np.stack([(CAM.K @ (Ti[:3, :3] @ X + Ti[:3, 3]))[:2] / (Ti[:3, :3] @ X + Ti[:3, 3])[2] for Ti in T])
+    Xh, err, angle = triangulate_multiview(T, uv + rng.normal(0, 1e-9, uv.shape), CAM.K)
+    np.testing.assert_allclose(Xh, X, atol=1e-6)
+    a, b = X - np.array([0, 0, 0]), X - np.array([1.0, 0, 0])
+    expected = np.degrees(np.arccos(a @ b / np.linalg.norm(a) / np.linalg.norm(b)))
+    assert err.max() < 1e-5 and angle == pytest.approx(expected, abs=1e-6)
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 0.5])
+def test_registers_all_keyframes(noise_px):
+    tracks, T_cw, _ = make_tracks(noise_px=noise_px)
+    reg = register_keyframes(tracks)
+    assert not reg.lost
+    assert len(reg.frames) == len(tracks)
+    est = np.stack([-reg.T_cw[f][:3, :3].T @ reg.T_cw[f][:3, 3] for f in range(len(tracks))])
+    gt = np.stack([-T[:3, :3].T @ T[:3, 3] for T in T_cw])
+    s, R, t = _umeyama_sim3(est, gt)
+    err = np.linalg.norm((s * est @ R.T + t) - gt, axis=1)
+    path = np.linalg.norm(np.diff(gt, axis=0), axis=1).sum()
+    assert np.sqrt(np.mean(err**2)) < MAX_REL_POSITION_ERR * path
+
+
+def test_static_camera_cannot_initialise():
+    from papl_mapper.errors import InputError
+
+    tracks, _, _ = make_tracks(n_frames=10)
+    first = tracks.point_frame == 0
+    uv0 = dict(zip(tracks.point_track[first].tolist(), tracks.point_uv[first], strict=True))
+    keep = np.isin(tracks.point_track, list(uv0))
+    tracks.point_frame, tracks.point_track = tracks.point_frame[keep], tracks.point_track[keep]
+    tracks.point_uv = np.stack([uv0[t] for t in tracks.point_track.tolist()])  # nothing moves
+    with pytest.raises(InputError, match="could not initialise"):
+        register_keyframes(tracks)
