@@ -1,1 +1,22 @@
-"""Off-screen previews, the HTML report and the desktop viewer; import as papl_mapper.gui."""
+"""Off-screen previews and the HTML map report; import as papl_mapper.gui.
+
+Public surface:
+- `render_previews(map, out_dir, options=None) -> list[Path]`: isometric/top/front/side PNGs coloured by axis.
+- `write_report(run_dir_or_map, out_path, gt_dir=None, options=None) -> Path`: one self-contained HTML file.
+pyvista/VTK and matplotlib are imported only when rendering, so importing this package is cheap.
+"""
+
+from .preview import PreviewOptions, PreviewResult, find_offscreen_backend, render_previews, render_views
+from .report import ReportOptions, build_report_html, load_run, write_report
+
+__all__ = [
+    "PreviewOptions",
+    "PreviewResult",
+    "ReportOptions",
+    "build_report_html",
+    "find_offscreen_backend",
+    "load_run",
+    "render_previews",
+    "render_views",
+    "write_report",
+]

@@ -1,0 +1,543 @@
+"""Off-screen PNG previews of a Map (isometric, top, front, side) with pyvista/VTK, and a turntable.
+
+Lines are coloured by axis from the one palette (`papl_mapper.palette`), points are faint, the
+trajectory and keyframe frusta are optional. Each view is auto-framed (orthographic) to the map;
+a title band and a legend naming every axis are drawn onto the image with PIL so the swatches carry
+the exact palette colours. Huge maps are decimated (seeded) and the subtitle says so.
+
+No X server is needed: a subprocess probe finds a working off-screen OpenGL window (EGL, then
+OSMesa) before VTK is touched in this process, since a missing library makes VTK crash, not raise.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from papl_mapper.errors import BackendUnavailableError, InputError
+from papl_mapper.map import Map
+from papl_mapper.palette import UNANCHORED_RGB, axis_colors, axis_names, line_colors
+
+log = logging.getLogger(__name__)
+
+VIEWS = ("isometric", "top", "front", "side")
+#: view name -> (direction from the focal point to the camera, camera up), world +Z up.
+_VIEW_GEOMETRY: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
+    "isometric": ((1.0, -1.0, 0.8), (0.0, 0.0, 1.0)),
+    "top": ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
+    "front": ((0.0, -1.0, 0.0), (0.0, 0.0, 1.0)),
+    "side": ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+}
+TRAJECTORY_RGB: tuple[int, int, int] = (110, 40, 150)  # dark violet: not in the axis palette
+THEMES: dict[str, dict[str, tuple[int, int, int]]] = {
+    "white": {"background": (255, 255, 255), "text": (25, 25, 25), "panel": (245, 245, 245)},
+    "dark": {"background": (24, 26, 32), "text": (235, 235, 235), "panel": (40, 43, 52)},
+}
+#: Off-screen VTK window classes to try: (VTK_DEFAULT_OPENGL_WINDOW value, name, Debian packages).
+BACKENDS: tuple[tuple[str, str, str], ...] = (
+    ("vtkEGLRenderWindow", "EGL", "libegl1 libgl1"),
+    ("vtkOSOpenGLRenderWindow", "OSMesa", "libosmesa6"),
+)
+_PROBE_CODE = (
+    "import vtkmodules.vtkRenderingOpenGL2, vtkmodules.vtkRenderingCore as rc\n"
+    "w = rc.vtkRenderWindow(); w.SetOffScreenRendering(1); w.SetSize(8, 8); w.Render()\n"
+    "print('PAPL_PROBE', w.GetClassName(), int(w.SupportsOpenGL()))\n"
+)
+
+
+@dataclass
+class PreviewOptions:
+    """How previews look. Every field has a default; load from TOML with `load_config`."""
+
+    width: int = 1600
+    """Image width in pixels."""
+    height: int = 1200
+    """Image height in pixels (a title band is part of it)."""
+    views: tuple[str, ...] = VIEWS
+    """Views to render, any of isometric, top, front, side."""
+    theme: Literal["white", "dark"] = "white"
+    """Background theme: white or dark."""
+    line_width: float = 0.0
+    """Line width in pixels; 0 picks one readable at the resolution (2.5 px at 1600x1200, at least 2)."""
+    show_points: bool = True
+    """Draw the map points, faint (blended toward the background)."""
+    point_size: float = 0.0
+    """Point size in pixels; 0 picks one from the resolution."""
+    show_trajectory: bool = True
+    """Draw the keyframe trajectory as a polyline."""
+    show_frusta: bool = False
+    """Draw a small camera frustum at every keyframe."""
+    max_lines: int = 200_000
+    """More lines than this are decimated (seeded random subset) for the preview."""
+    max_points: int = 200_000
+    """More points than this are decimated for the preview."""
+    palette: str = "okabe-ito"
+    """Axis palette name from papl_mapper.palette.PALETTES."""
+    turntable: Literal["", "gif", "mp4"] = ""
+    """Also write a turntable animation: '' (none), 'gif' or 'mp4'."""
+    turntable_frames: int = 36
+    """Frames in one turn of the turntable."""
+    turntable_size: tuple[int, ...] = (800, 600)
+    """Turntable frame size (width, height) in pixels."""
+    turntable_fps: float = 12.0
+    """Turntable frames per second."""
+    seed: int = 0
+    """Seed of the decimation subset."""
+    title: str = ""
+    """Title prefix; empty uses the map's source name if known."""
+
+
+@dataclass
+class Scene:
+    """What one map looks like in the previews, prepared once for every view."""
+
+    endpoints_w: np.ndarray  # (m, 2, 3) lines drawn (after decimation)
+    line_rgb: np.ndarray  # (m, 3) uint8
+    points_w: np.ndarray  # (p, 3) points drawn
+    point_rgb: np.ndarray  # (p, 3) uint8, already faded toward the background
+    centres_w: np.ndarray  # (k, 3) keyframe centres
+    frusta_w: np.ndarray  # (k, 5, 3) apex + 4 image-corner points of each frustum
+    legend: list[tuple[str, tuple[int, int, int]]]  # (label, rgb)
+    notes: list[str]  # decimation and emptiness notes, shown in the subtitle and the report
+    n_lines: int  # lines in the map
+    n_points: int  # points in the map
+
+    @property
+    def empty(self) -> bool:
+        return not (len(self.endpoints_w) or len(self.points_w) or len(self.centres_w))
+
+
+@dataclass
+class PreviewResult:
+    """Files written by `render_views`, with the facts the report shows beside them."""
+
+    paths: list[Path]
+    views: list[str]
+    notes: list[str]
+    backend: str
+    time_s: dict[str, float] = field(default_factory=dict)
+    turntable: Path | None = None
+
+
+# ---- backend --------------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=8)
+def _probe(window_class: str, env_items: tuple[tuple[str, str], ...]) -> tuple[bool, str]:
+    env = dict(env_items)
+    env["VTK_DEFAULT_OPENGL_WINDOW"] = window_class
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-c", _PROBE_CODE], env=env, capture_output=True, text=True, timeout=120
+        )
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return False, str(exc)
+    out = proc.stdout.split()
+    if proc.returncode == 0 and len(out) >= 3 and out[0] == "PAPL_PROBE" and out[2] == "1":
+        return True, out[1]
+    tail = (proc.stderr.strip().splitlines() or [f"exit code {proc.returncode}"])[-1]
+    if proc.returncode < 0:
+        tail = f"crashed with signal {-proc.returncode}: {tail}"
+    return False, tail.replace("\x1b[0m", "").replace("\x1b[33m", "")[-300:]
+
+
+def find_offscreen_backend(env: dict[str, str] | None = None) -> str:
+    """Name the VTK off-screen window class that renders here (EGL, then OSMesa), probed in a subprocess.
+
+    Raises BackendUnavailableError naming the system packages to install when none works.
+    """
+    env = dict(os.environ if env is None else env)
+    forced = env.get("VTK_DEFAULT_OPENGL_WINDOW")
+    candidates = list(BACKENDS)
+    if forced and forced not in [c[0] for c in BACKENDS]:
+        candidates.insert(0, (forced, forced, "the libraries it needs"))
+    failures = []
+    for window_class, name, _packages in candidates:
+        ok, detail = _probe(window_class, tuple(sorted(env.items())))
+        if ok:
+            log.debug("off-screen rendering with %s (%s)", name, detail)
+            return window_class
+        failures.append(f"{name}: {detail}")
+    raise BackendUnavailableError(
+        "no off-screen OpenGL backend works on this machine ("
+        + "; ".join(failures)
+        + "). Install the system packages for EGL (libegl1 libgl1) or OSMesa (libosmesa6), e.g. "
+        "`apt-get install -y libegl1 libgl1 libosmesa6`"
+    )
+
+
+def _plotter(size: tuple[int, int], background: tuple[int, int, int]) -> Any:
+    """An off-screen pyvista Plotter on the probed backend."""
+    os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = find_offscreen_backend()
+    import pyvista as pv
+
+    pl = pv.Plotter(off_screen=True, window_size=list(size), lighting=None)
+    pl.set_background([c / 255 for c in background])
+    return pl
+
+
+# ---- scene ----------------------------------------------------------------------------------
+
+
+def _fade(rgb: np.ndarray, background: tuple[int, int, int], keep: float) -> np.ndarray:
+    return (keep * rgb.astype(np.float64) + (1 - keep) * np.asarray(background, np.float64)).astype(np.uint8)
+
+
+def prepare_scene(m: Map, options: PreviewOptions) -> Scene:
+    """Colours, decimation and legend for a map (shared by every view and the report)."""
+    rng = np.random.default_rng(options.seed)
+    theme = THEMES[options.theme]
+    notes: list[str] = []
+    n_axes = len(m.axes)
+    axis = m.lines.axis_of_line()
+    rgb = line_colors(axis, n_axes, m.axes.vertical_index, options.palette)
+    ends = m.lines.endpoints_w
+    if len(ends) > options.max_lines:
+        keep = np.sort(rng.choice(len(ends), options.max_lines, replace=False))
+        ends, rgb = ends[keep], rgb[keep]
+        notes.append(f"decimated for preview: {len(keep):,} of {len(m.lines):,} lines shown")
+    pts = m.points.xyz if options.show_points else np.zeros((0, 3))
+    prgb = m.points.color if options.show_points else np.zeros((0, 3), np.uint8)
+    if len(pts) > options.max_points:
+        keep = np.sort(rng.choice(len(pts), options.max_points, replace=False))
+        pts, prgb = pts[keep], prgb[keep]
+        notes.append(f"decimated for preview: {len(keep):,} of {len(m.points):,} points shown")
+    prgb = _fade(prgb, theme["background"], 0.45)
+    centres = m.keyframes.T_wc[:, :3, 3] if options.show_trajectory else np.zeros((0, 3))
+    frusta = np.zeros((0, 5, 3))
+    if options.show_frusta and len(m.keyframes):
+        frusta = _frusta(m, _robust_diagonal(m) * 0.03)
+    legend = [
+        (f"{name}  ({int((axis == a).sum()):,})", tuple(int(c) for c in col))
+        for a, (name, col) in enumerate(
+            zip(
+                axis_names(n_axes, m.axes.vertical_index),
+                axis_colors(n_axes, m.axes.vertical_index, options.palette),
+                strict=True,
+            )
+        )
+    ]
+    legend.append((f"unanchored  ({int((axis < 0).sum()):,})", UNANCHORED_RGB))
+    if len(centres) or len(frusta):
+        legend.append(("trajectory", TRAJECTORY_RGB))
+    if len(m.lines) == 0 and len(m.points) == 0 and len(m.keyframes) == 0:
+        notes.append("empty map: no lines, points or keyframes")
+    elif len(m.lines) == 0:
+        notes.append("no lines in this map")
+    return Scene(ends, rgb, pts, prgb, centres, frusta, legend, notes, len(m.lines), len(m.points))
+
+
+def _robust_diagonal(m: Map) -> float:
+    xyz = [m.lines.endpoints_w.reshape(-1, 3), m.keyframes.T_wc[:, :3, 3], m.points.xyz]
+    xyz = np.concatenate([x for x in xyz if len(x)] or [np.zeros((1, 3))])
+    lo, hi = np.percentile(xyz, [1, 99], axis=0)
+    return float(np.linalg.norm(hi - lo)) or 1.0
+
+
+def _frusta(m: Map, depth: float) -> np.ndarray:
+    """(K, 5, 3) apex and the four image corners at `depth` in front of each keyframe."""
+    c = m.camera
+    u = np.array([0.0, c.width - 1, c.width - 1, 0.0])
+    v = np.array([0.0, 0.0, c.height - 1, c.height - 1])
+    rays_c = np.stack([(u - c.cx) / c.fx, (v - c.cy) / c.fy, np.ones(4)], axis=1) * depth  # (4, 3)
+    R, t = m.keyframes.T_wc[:, :3, :3], m.keyframes.T_wc[:, :3, 3]
+    corners_w = np.einsum("kij,cj->kci", R, rays_c) + t[:, None]  # (K, 4, 3)
+    return np.concatenate([t[:, None], corners_w], axis=1)
+
+
+def _framing_points(scene: Scene) -> np.ndarray:
+    """(n, 3) the points every view must show: lines and trajectory fully, points robustly."""
+    parts = []
+    if len(scene.endpoints_w):
+        e = scene.endpoints_w.reshape(-1, 3)
+        if len(e) > 2000:  # drop the outer 0.2 % per axis: a few stray lines must not shrink the map
+            lo, hi = np.percentile(e, [0.2, 99.8], axis=0)
+            e = e[((e >= lo) & (e <= hi)).all(axis=1)]
+        parts.append(e)
+    if len(scene.centres_w):
+        parts.append(scene.centres_w)
+    if len(scene.frusta_w):
+        parts.append(scene.frusta_w.reshape(-1, 3))
+    if len(scene.points_w):
+        p = scene.points_w
+        if len(p) > 50:
+            lo, hi = np.percentile(p, [1, 99], axis=0)
+            p = p[((p >= lo) & (p <= hi)).all(axis=1)]
+        parts.append(p)
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+def _camera_for(
+    view_dir: np.ndarray, up: np.ndarray, pts: np.ndarray, aspect: float, margin: float = 1.12
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Orthographic camera (position, focal point, up, parallel scale) framing `pts` from `view_dir`."""
+    d = view_dir / np.linalg.norm(view_dir)
+    right = np.cross(-d, up)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(right, -d)
+    if len(pts) == 0:
+        pts = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    x, y, z = pts @ right, pts @ true_up, pts @ d
+    cx, cy = 0.5 * (x.min() + x.max()), 0.5 * (y.min() + y.max())
+    half_h = max(0.5 * (y.max() - y.min()), 0.5 * (x.max() - x.min()) / aspect) * margin
+    half_h = half_h if half_h > 1e-9 else 1.0
+    focal = right * cx + true_up * cy + d * 0.5 * (z.min() + z.max())
+    dist = max(float(z.max() - z.min()), 2 * half_h) * 2 + 1.0
+    return focal + d * dist, focal, true_up, float(half_h)
+
+
+def _build_plotter(scene: Scene, options: PreviewOptions, size: tuple[int, int]) -> Any:
+    import pyvista as pv
+
+    theme = THEMES[options.theme]
+    pl = _plotter(size, theme["background"])
+    scale = min(size[0] / 1600, size[1] / 1200)
+    lw = options.line_width or max(2.0, round(2.5 * scale * 2) / 2)
+    ps = options.point_size or max(1.0, round(2.0 * scale))
+    if len(scene.points_w):
+        cloud = pv.PolyData(np.ascontiguousarray(scene.points_w, dtype=np.float64))
+        cloud.point_data["rgb"] = scene.point_rgb
+        pl.add_mesh(cloud, scalars="rgb", rgb=True, point_size=ps, lighting=False, style="points")
+    if len(scene.endpoints_w):
+        m = len(scene.endpoints_w)
+        cells = np.column_stack([np.full(m, 2), np.arange(0, 2 * m, 2), np.arange(1, 2 * m, 2)]).ravel()
+        seg = pv.PolyData(
+            np.ascontiguousarray(scene.endpoints_w.reshape(-1, 3), dtype=np.float64), lines=cells
+        )
+        seg.cell_data["rgb"] = scene.line_rgb
+        pl.add_mesh(seg, scalars="rgb", rgb=True, line_width=lw, lighting=False)
+    traj_rgb = [c / 255 for c in TRAJECTORY_RGB]
+    if len(scene.centres_w) >= 2:
+        pl.add_mesh(pv.lines_from_points(scene.centres_w), color=traj_rgb, line_width=lw, lighting=False)
+    if len(scene.frusta_w):
+        k = len(scene.frusta_w)
+        base = np.arange(k)[:, None] * 5
+        edges = np.array([[0, 1], [0, 2], [0, 3], [0, 4], [1, 2], [2, 3], [3, 4], [4, 1]])
+        cells = (base[:, None, :] + edges[None]).reshape(-1, 2)
+        fr = pv.PolyData(
+            scene.frusta_w.reshape(-1, 3), lines=np.column_stack([np.full(len(cells), 2), cells]).ravel()
+        )
+        pl.add_mesh(fr, color=traj_rgb, line_width=max(1.0, lw / 2), lighting=False)
+    return pl
+
+
+# ---- overlay (title band and legend) --------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=16)
+def _font(size: int) -> Any:
+    from matplotlib import font_manager
+    from PIL import ImageFont
+
+    return ImageFont.truetype(font_manager.findfont("DejaVu Sans"), size)
+
+
+def _band_height(height: int) -> int:
+    return max(24, round(0.075 * height))
+
+
+def legend_box(size: tuple[int, int], n_entries: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) of the legend panel in an image of `size` (top-right, below the title band)."""
+    w, h = size
+    fs = max(10, round(0.02 * h))
+    pad, row = round(0.6 * fs), round(1.5 * fs)
+    box_w = round(13 * fs)
+    x1 = w - pad
+    y0 = _band_height(h) + pad
+    return x1 - box_w, y0, x1, y0 + 2 * pad + row * n_entries
+
+
+def _compose(
+    render: np.ndarray, scene: Scene, options: PreviewOptions, title: str, subtitle: str
+) -> np.ndarray:
+    """Paste the render under a title band and draw the legend; returns (H, W, 3) uint8."""
+    from PIL import Image, ImageDraw
+
+    theme = THEMES[options.theme]
+    h, w = options.height, render.shape[1]
+    band = h - render.shape[0]
+    canvas = Image.new("RGB", (w, h), theme["panel"])
+    canvas.paste(Image.fromarray(render), (0, band))
+    draw = ImageDraw.Draw(canvas)
+    fs = max(10, round(0.02 * h))
+    draw.text((round(0.6 * fs), round(0.12 * band)), title, fill=theme["text"], font=_font(round(1.3 * fs)))
+    draw.text(
+        (round(0.6 * fs), round(0.58 * band)),
+        subtitle,
+        fill=theme["text"],
+        font=_font(max(9, round(0.9 * fs))),
+    )
+    x0, y0, x1, y1 = legend_box((w, h), len(scene.legend))
+    draw.rectangle((x0, y0, x1, y1), fill=theme["panel"], outline=theme["text"], width=1)
+    pad, row = round(0.6 * fs), round(1.5 * fs)
+    for i, (label, rgb) in enumerate(scene.legend):
+        y = y0 + pad + i * row
+        draw.rectangle((x0 + pad, y + 2, x0 + pad + fs, y + fs + 2), fill=tuple(rgb))
+        draw.text((x0 + 2 * pad + fs, y), label, fill=theme["text"], font=_font(fs))
+    if scene.empty:
+        msg = scene.notes[0] if scene.notes else "nothing to show"
+        f = _font(round(1.5 * fs))
+        tw = draw.textlength(msg, font=f)
+        draw.text(((w - tw) / 2, band + (h - band) / 2), msg, fill=theme["text"], font=f)
+    return np.asarray(canvas)
+
+
+def _save_png(img: np.ndarray, path: Path) -> None:
+    from PIL import Image
+
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        Image.fromarray(img).save(tmp, optimize=False, compress_level=4)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+# ---- public ---------------------------------------------------------------------------------
+
+
+def render_views(
+    m: Map,
+    out_dir: str | os.PathLike,
+    options: PreviewOptions | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> PreviewResult:
+    """Render the chosen views (and optionally a turntable) of `m` into `out_dir` as `<view>.png`."""
+    options = options or PreviewOptions()
+    _check_options(options)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    scene = prepare_scene(m, options)
+    backend = find_offscreen_backend()
+    band = _band_height(options.height)
+    size = (options.width, options.height - band)
+    t0 = time.perf_counter()
+    pl = _build_plotter(scene, options, size)
+    times = {"setup_s": time.perf_counter() - t0}
+    frame_pts = _framing_points(scene)
+    name = options.title or str(m.metadata.get("source", m.metadata.get("name", "map")))
+    counts = f"{scene.n_lines:,} lines, {scene.n_points:,} points, {len(m.keyframes):,} keyframes"
+    units = m.metadata.get("units", "arbitrary")
+    subtitle = "; ".join([counts, f"units: {units}", *scene.notes])
+    paths, total = [], len(options.views) + (options.turntable_frames if options.turntable else 0)
+    try:
+        for i, view in enumerate(options.views):
+            t1 = time.perf_counter()
+            d, up = (np.asarray(v) for v in _VIEW_GEOMETRY[view])
+            _set_camera(pl, *_camera_for(d, up, frame_pts, size[0] / size[1]))
+            img = np.asarray(pl.screenshot(return_img=True))[..., :3]
+            path = out_dir / f"{view}.png"
+            _save_png(_compose(img, scene, options, f"{name}: {view} view", subtitle), path)
+            paths.append(path)
+            times[f"{view}_s"] = time.perf_counter() - t1
+            if progress:
+                progress(i + 1, total, view)
+        turntable = None
+        if options.turntable:
+            t1 = time.perf_counter()
+            turntable = _turntable(pl, scene, options, out_dir, frame_pts, name, subtitle, progress, total)
+            times["turntable_s"] = time.perf_counter() - t1
+    finally:
+        pl.close()
+    return PreviewResult(paths, list(options.views), scene.notes, backend, times, turntable)
+
+
+def render_previews(m: Map, out_dir: str | os.PathLike, options: PreviewOptions | None = None) -> list[Path]:
+    """Render the preview PNGs of `m` into `out_dir`; returns their paths (see `render_views`)."""
+    return render_views(m, out_dir, options).paths
+
+
+def _check_options(o: PreviewOptions) -> None:
+    bad = [v for v in o.views if v not in _VIEW_GEOMETRY]
+    if bad:
+        raise InputError(f"unknown preview view(s) {bad}; choose from {list(VIEWS)}")
+    if o.theme not in THEMES:
+        raise InputError(f"unknown theme {o.theme!r}; choose from {list(THEMES)}")
+    if not (64 <= o.width <= 8192 and 64 <= o.height <= 8192):
+        raise InputError(f"preview size {o.width}x{o.height} must lie within 64..8192 pixels")
+    if o.turntable not in ("", "gif", "mp4"):
+        raise InputError(f"turntable {o.turntable!r}: choose '', 'gif' or 'mp4'")
+    if len(o.turntable_size) != 2 or min(o.turntable_size) < 64:
+        raise InputError(f"turntable_size {o.turntable_size}: give (width, height), each >= 64")
+
+
+def _set_camera(pl: Any, position: np.ndarray, focal: np.ndarray, up: np.ndarray, scale: float) -> None:
+    pl.camera_position = [tuple(position), tuple(focal), tuple(up)]  # also marks the camera as set
+    cam = pl.camera
+    cam.parallel_projection = True
+    cam.parallel_scale = scale
+    pl.renderer.ResetCameraClippingRange()
+    pl.render()
+
+
+def _turntable(
+    pl: Any,
+    scene: Scene,
+    options: PreviewOptions,
+    out_dir: Path,
+    frame_pts: np.ndarray,
+    name: str,
+    subtitle: str,
+    progress: Callable[[int, int, str], None] | None,
+    total: int,
+) -> Path:
+    """One turn about the vertical axis at a fixed zoom; GIF via imageio or MP4 via OpenCV."""
+    w, h = (int(v) for v in options.turntable_size)
+    band = _band_height(h)
+    size = (w, h - band)
+    pl.window_size = list(size)
+    centre = 0.5 * (frame_pts.min(axis=0) + frame_pts.max(axis=0)) if len(frame_pts) else np.zeros(3)
+    radius = float(np.linalg.norm(frame_pts - centre, axis=1).max()) if len(frame_pts) else 1.0
+    radius = radius or 1.0
+    small = PreviewOptions(**{**options.__dict__, "width": w, "height": h})
+    frames = []
+    base = np.asarray(_VIEW_GEOMETRY["isometric"][0])
+    for k in range(options.turntable_frames):
+        a = 2 * math.pi * k / options.turntable_frames
+        rot = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+        d = rot @ base
+        d /= np.linalg.norm(d)
+        scale = radius * 1.05 * max(1.0, size[1] / size[0])
+        _set_camera(pl, centre + d * (4 * radius + 1), centre, np.array([0.0, 0.0, 1.0]), scale)
+        img = np.asarray(pl.screenshot(return_img=True))[..., :3]
+        frames.append(_compose(img, scene, small, f"{name}: turntable", subtitle))
+        if progress:
+            progress(len(options.views) + k + 1, total, f"turntable {k + 1}")
+    path = out_dir / f"turntable.{options.turntable}"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=out_dir)
+    os.close(fd)
+    try:
+        if options.turntable == "gif":
+            import imageio.v2 as imageio
+
+            imageio.mimsave(tmp, frames, format="GIF", duration=1000 / options.turntable_fps, loop=0)
+        else:
+            import cv2
+
+            vw = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), options.turntable_fps, (w, h))
+            if not vw.isOpened():
+                raise BackendUnavailableError(
+                    f"{path}: OpenCV cannot write MP4 (mp4v) here; use turntable='gif' instead"
+                )
+            for f in frames:
+                vw.write(np.ascontiguousarray(f[..., ::-1]))
+            vw.release()
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
