@@ -257,43 +257,53 @@ def _frusta(m: Map, depth: float) -> np.ndarray:
     return np.concatenate([t[:, None], corners_w], axis=1)
 
 
+def _robust(x: np.ndarray, q: float) -> np.ndarray:
+    """Rows of `x` (n, 3) except far strays: beyond the q..100-q percentile range widened by half its span."""
+    if len(x) < 50:
+        return x
+    lo, hi = np.percentile(x, [q, 100 - q], axis=0)
+    span = hi - lo
+    return x[((x >= lo - 0.5 * span) & (x <= hi + 0.5 * span)).all(axis=1)]
+
+
 def _framing_points(scene: Scene) -> np.ndarray:
-    """(n, 3) the points every view must show: lines and trajectory fully, points robustly."""
+    """(n, 3) the points every view must show: lines, trajectory and points, less far strays."""
     parts = []
     if len(scene.endpoints_w):
-        e = scene.endpoints_w.reshape(-1, 3)
-        if len(e) > 2000:  # drop the outer 0.2 % per axis: a few stray lines must not shrink the map
-            lo, hi = np.percentile(e, [0.2, 99.8], axis=0)
-            e = e[((e >= lo) & (e <= hi)).all(axis=1)]
-        parts.append(e)
+        parts.append(_robust(scene.endpoints_w.reshape(-1, 3), 0.5))
     if len(scene.centres_w):
         parts.append(scene.centres_w)
     if len(scene.frusta_w):
         parts.append(scene.frusta_w.reshape(-1, 3))
     if len(scene.points_w):
-        p = scene.points_w
-        if len(p) > 50:
-            lo, hi = np.percentile(p, [1, 99], axis=0)
-            p = p[((p >= lo) & (p <= hi)).all(axis=1)]
-        parts.append(p)
+        parts.append(_robust(scene.points_w, 1.0))
     return np.concatenate(parts) if parts else np.zeros((0, 3))
 
 
 def _camera_for(
-    view_dir: np.ndarray, up: np.ndarray, pts: np.ndarray, aspect: float, margin: float = 1.12
+    view_dir: np.ndarray,
+    up: np.ndarray,
+    pts: np.ndarray,
+    size: tuple[int, int],
+    reserve_right_px: int = 0,
+    margin: float = 1.1,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Orthographic camera (position, focal point, up, parallel scale) framing `pts` from `view_dir`."""
+    """Orthographic camera (position, focal point, up, parallel scale) framing `pts` from `view_dir`
+    into an image of `size` (w, h) whose right `reserve_right_px` pixels are kept free for the legend."""
     d = view_dir / np.linalg.norm(view_dir)
     right = np.cross(-d, up)
     right /= np.linalg.norm(right)
     true_up = np.cross(right, -d)
     if len(pts) == 0:
         pts = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    w, h = size
+    usable = max(w - reserve_right_px, w // 3)
     x, y, z = pts @ right, pts @ true_up, pts @ d
     cx, cy = 0.5 * (x.min() + x.max()), 0.5 * (y.min() + y.max())
-    half_h = max(0.5 * (y.max() - y.min()), 0.5 * (x.max() - x.min()) / aspect) * margin
+    half_h = max(0.5 * (y.max() - y.min()), 0.5 * (x.max() - x.min()) * h / usable) * margin
     half_h = half_h if half_h > 1e-9 else 1.0
-    focal = right * cx + true_up * cy + d * 0.5 * (z.min() + z.max())
+    shift = 0.5 * (w - usable) * (2 * half_h / h)  # world units: data centred in the free part
+    focal = right * (cx + shift) + true_up * cy + d * 0.5 * (z.min() + z.max())
     dist = max(float(z.max() - z.min()), 2 * half_h) * 2 + 1.0
     return focal + d * dist, focal, true_up, float(half_h)
 
@@ -320,7 +330,10 @@ def _build_plotter(scene: Scene, options: PreviewOptions, size: tuple[int, int])
         pl.add_mesh(seg, scalars="rgb", rgb=True, line_width=lw, lighting=False)
     traj_rgb = [c / 255 for c in TRAJECTORY_RGB]
     if len(scene.centres_w) >= 2:
-        pl.add_mesh(pv.lines_from_points(scene.centres_w), color=traj_rgb, line_width=lw, lighting=False)
+        actor = pl.add_mesh(
+            pv.lines_from_points(scene.centres_w), color=traj_rgb, line_width=1.5 * lw, lighting=False
+        )
+        _to_overlay(pl, actor)  # the path stays visible inside a dense map
     if len(scene.frusta_w):
         k = len(scene.frusta_w)
         base = np.arange(k)[:, None] * 5
@@ -331,6 +344,23 @@ def _build_plotter(scene: Scene, options: PreviewOptions, size: tuple[int, int])
         )
         pl.add_mesh(fr, color=traj_rgb, line_width=max(1.0, lw / 2), lighting=False)
     return pl
+
+
+def _to_overlay(pl: Any, actor: Any) -> None:
+    """Move `actor` to a second renderer layer drawn over the map with the same camera."""
+    from vtkmodules.vtkRenderingCore import vtkRenderer
+
+    top = getattr(pl, "_papl_overlay", None)
+    if top is None:
+        top = vtkRenderer()
+        top.SetLayer(1)
+        top.InteractiveOff()
+        top.SetActiveCamera(pl.renderer.GetActiveCamera())
+        pl.ren_win.SetNumberOfLayers(2)
+        pl.ren_win.AddRenderer(top)
+        pl._papl_overlay = top
+    pl.renderer.RemoveActor(actor)
+    top.AddActor(actor)
 
 
 # ---- overlay (title band and legend) --------------------------------------------------------
@@ -348,15 +378,21 @@ def _band_height(height: int) -> int:
     return max(24, round(0.075 * height))
 
 
-def legend_box(size: tuple[int, int], n_entries: int) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1) of the legend panel in an image of `size` (top-right, below the title band)."""
+def _legend_font_size(height: int) -> int:
+    return max(10, round(0.02 * height))
+
+
+def legend_box(size: tuple[int, int], labels: list[str]) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) of the legend panel in an image of `size`: top-right, below the title band,
+    as wide as its longest label."""
     w, h = size
-    fs = max(10, round(0.02 * h))
+    fs = _legend_font_size(h)
     pad, row = round(0.6 * fs), round(1.5 * fs)
-    box_w = round(13 * fs)
+    text_w = max((_font(fs).getlength(lbl) for lbl in labels), default=0.0)
+    box_w = round(3 * pad + fs + text_w)
     x1 = w - pad
     y0 = _band_height(h) + pad
-    return x1 - box_w, y0, x1, y0 + 2 * pad + row * n_entries
+    return x1 - box_w, y0, x1, y0 + 2 * pad + row * len(labels)
 
 
 def _compose(
@@ -371,7 +407,7 @@ def _compose(
     canvas = Image.new("RGB", (w, h), theme["panel"])
     canvas.paste(Image.fromarray(render), (0, band))
     draw = ImageDraw.Draw(canvas)
-    fs = max(10, round(0.02 * h))
+    fs = _legend_font_size(h)
     draw.text((round(0.6 * fs), round(0.12 * band)), title, fill=theme["text"], font=_font(round(1.3 * fs)))
     draw.text(
         (round(0.6 * fs), round(0.58 * band)),
@@ -379,7 +415,7 @@ def _compose(
         fill=theme["text"],
         font=_font(max(9, round(0.9 * fs))),
     )
-    x0, y0, x1, y1 = legend_box((w, h), len(scene.legend))
+    x0, y0, x1, y1 = legend_box((w, h), [lbl for lbl, _ in scene.legend])
     draw.rectangle((x0, y0, x1, y1), fill=theme["panel"], outline=theme["text"], width=1)
     pad, row = round(0.6 * fs), round(1.5 * fs)
     for i, (label, rgb) in enumerate(scene.legend):
@@ -429,6 +465,8 @@ def render_views(
     pl = _build_plotter(scene, options, size)
     times = {"setup_s": time.perf_counter() - t0}
     frame_pts = _framing_points(scene)
+    x0, _, x1, _ = legend_box((options.width, options.height), [lbl for lbl, _ in scene.legend])
+    reserve = options.width - x0 + round(0.6 * _legend_font_size(options.height))
     name = options.title or str(m.metadata.get("source", m.metadata.get("name", "map")))
     counts = f"{scene.n_lines:,} lines, {scene.n_points:,} points, {len(m.keyframes):,} keyframes"
     units = m.metadata.get("units", "arbitrary")
@@ -438,7 +476,7 @@ def render_views(
         for i, view in enumerate(options.views):
             t1 = time.perf_counter()
             d, up = (np.asarray(v) for v in _VIEW_GEOMETRY[view])
-            _set_camera(pl, *_camera_for(d, up, frame_pts, size[0] / size[1]))
+            _set_camera(pl, *_camera_for(d, up, frame_pts, size, reserve))
             img = np.asarray(pl.screenshot(return_img=True))[..., :3]
             path = out_dir / f"{view}.png"
             _save_png(_compose(img, scene, options, f"{name}: {view} view", subtitle), path)
@@ -480,7 +518,8 @@ def _set_camera(pl: Any, position: np.ndarray, focal: np.ndarray, up: np.ndarray
     cam = pl.camera
     cam.parallel_projection = True
     cam.parallel_scale = scale
-    pl.renderer.ResetCameraClippingRange()
+    dist = float(np.linalg.norm(np.asarray(position) - np.asarray(focal)))
+    cam.clipping_range = (0.02 * dist, 3.0 * dist)  # cameras stand >= 2 depth spans off the data
     pl.render()
 
 

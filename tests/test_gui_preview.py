@@ -94,12 +94,16 @@ def _near(img: np.ndarray, rgb) -> np.ndarray:
     return np.linalg.norm(img - np.asarray(rgb, np.float64), axis=-1) < COLOUR_DIST
 
 
-def _scene_mask(img: np.ndarray, n_legend: int) -> np.ndarray:
+def _legend(m: Map, o: P.PreviewOptions | None = None) -> list[str]:
+    return [label for label, _ in P.prepare_scene(m, o or _opts()).legend]
+
+
+def _scene_mask(img: np.ndarray, legend: list[str]) -> np.ndarray:
     """True on pixels of the 3D render (below the title band, outside the legend panel)."""
     h, w = img.shape[:2]
     mask = np.zeros((h, w), bool)
     mask[P._band_height(h) :, :] = True
-    x0, y0, x1, y1 = P.legend_box((w, h), n_legend)
+    x0, y0, x1, y1 = P.legend_box((w, h), legend)
     mask[y0 - 2 : y1 + 3, x0 - 2 : x1 + 3] = False
     return mask
 
@@ -120,12 +124,12 @@ def four_views(tmp_path_factory, building) -> P.PreviewResult:
     return P.render_views(building, tmp_path_factory.mktemp("views"), _opts())
 
 
-def test_four_views_written_not_blank_and_sized(four_views):
+def test_four_views_written_not_blank_and_sized(four_views, building):
     assert [p.name for p in four_views.paths] == [f"{v}.png" for v in P.VIEWS]
     for p in four_views.paths:
         img = _load(p)
         assert img.shape == (600, 800, 3)
-        scene = img[_scene_mask(img, 5)]
+        scene = img[_scene_mask(img, _legend(building))]
         ink = (np.abs(scene - 255).sum(axis=1) > 30).mean()
         assert ink > MIN_INK_FRACTION, f"{p.name} looks blank ({ink:.4f})"
     # the views differ from each other
@@ -138,7 +142,7 @@ def test_four_views_written_not_blank_and_sized(four_views):
 def test_axis_colours_in_proportion_to_projected_line_length(four_views, building):
     """Pixels of each axis colour in the isometric view ~ that axis' total on-screen length."""
     img = _load(four_views.paths[0])
-    mask = _scene_mask(img, 5)
+    mask = _scene_mask(img, _legend(building))
     n_axes = len(building.axes)
     colours = list(axis_colors(n_axes, 0)) + [UNANCHORED_RGB]
     counts = np.array([(_near(img, c) & mask).sum() for c in colours], np.float64)
@@ -153,19 +157,19 @@ def test_axis_colours_in_proportion_to_projected_line_length(four_views, buildin
     np.testing.assert_allclose(share, want, rtol=SHARE_TOL)
 
 
-def test_top_view_shows_vertical_lines_as_dots(four_views):
+def test_top_view_shows_vertical_lines_as_dots(four_views, building):
     """Seen from above, vertical segments collapse to dots: their colour nearly vanishes."""
     vert = axis_colors(4, 0)[0]
     iso, top = _load(four_views.paths[0]), _load(four_views.paths[1])
-    n_iso = (_near(iso, vert) & _scene_mask(iso, 5)).sum()
-    n_top = (_near(top, vert) & _scene_mask(top, 5)).sum()
+    n_iso = (_near(iso, vert) & _scene_mask(iso, _legend(building))).sum()
+    n_top = (_near(top, vert) & _scene_mask(top, _legend(building))).sum()
     assert n_top < 0.1 * n_iso, (n_top, n_iso)
 
 
 def test_legend_swatches_in_top_right_corner(four_views, building):
     img = _load(four_views.paths[0])
     h, w = img.shape[:2]
-    x0, y0, x1, y1 = P.legend_box((w, h), 5)
+    x0, y0, x1, y1 = P.legend_box((w, h), _legend(building))
     assert x0 > w / 2 and y1 < h / 2  # top-right corner
     panel = img[y0:y1, x0:x1]
     for c in list(axis_colors(4, 0)) + [UNANCHORED_RGB]:
@@ -173,17 +177,20 @@ def test_legend_swatches_in_top_right_corner(four_views, building):
         assert exact > 50, f"legend swatch {tuple(c)} missing ({exact} px)"
 
 
-def test_framing_follows_the_map_wherever_it_is(tmp_path):
-    """A map far from the origin and tiny in scale fills the frame the same way."""
+def test_framing_follows_the_map_wherever_it_is_and_keeps_clear_of_the_legend(tmp_path):
+    """A map far from the origin and tiny in scale fills the frame the same way, left of the legend."""
     m = building_map(offset=(5000.0, -3000.0, 200.0), scale=0.001)
-    res = P.render_views(m, tmp_path, _opts(views=("top",)))
-    img = _load(res.paths[0])
-    mask = _scene_mask(img, 5)
-    ink = (np.abs(img - 255).sum(axis=-1) > 30) & mask
-    ys, xs = np.nonzero(ink)
-    band = P._band_height(600)
-    assert xs.max() - xs.min() > 0.55 * 800 or ys.max() - ys.min() > 0.55 * (600 - band)
-    assert xs.min() > 5 and xs.max() < 795 and ys.min() > band and ys.max() < 595
+    for view in ("top", "isometric"):
+        res = P.render_views(m, tmp_path, _opts(views=(view,)))
+        img = _load(res.paths[0])
+        band = P._band_height(600)
+        ink = np.abs(img - 255).sum(axis=-1) > 30
+        ink[:band] = False
+        x0, y0, x1, y1 = P.legend_box((800, 600), _legend(m))
+        ink[y0 - 1 : y1 + 2, x0 - 1 : x1 + 2] = False
+        ys, xs = np.nonzero(ink)
+        assert xs.max() - xs.min() > 0.5 * x0 or ys.max() - ys.min() > 0.6 * (600 - band), view
+        assert xs.min() > 5 and xs.max() < x0 - 2 and ys.min() > band and ys.max() < 595, view
 
 
 def test_points_trajectory_frusta_and_dark_theme(tmp_path, building):
@@ -193,7 +200,7 @@ def test_points_trajectory_frusta_and_dark_theme(tmp_path, building):
         _opts(views=("isometric",), show_points=True, show_trajectory=True, show_frusta=True, theme="dark"),
     )
     img = _load(res.paths[0])
-    mask = _scene_mask(img, 6)
+    mask = _scene_mask(img, _legend(building, _opts(show_points=True, show_trajectory=True)))
     bg = np.asarray(P.THEMES["dark"]["background"], np.float64)
     assert np.median(np.linalg.norm(img[mask] - bg, axis=1)) < 3  # mostly dark background
     assert (_near(img, P.TRAJECTORY_RGB) & mask).sum() > 30  # trajectory and frusta drawn
@@ -215,7 +222,7 @@ def test_single_axis_map_legend(tmp_path):
     assert [lbl.split()[0] for lbl, _ in scene.legend] == ["vertical", "unanchored"]
     res = P.render_views(m, tmp_path, _opts(views=("front",)))
     img = _load(res.paths[0])
-    assert (_near(img, axis_colors(1, 0)[0]) & _scene_mask(img, 2)).sum() > 100
+    assert (_near(img, axis_colors(1, 0)[0]) & _scene_mask(img, _legend(m))).sum() > 100
 
 
 def test_huge_map_is_decimated_and_says_so(tmp_path):
