@@ -83,6 +83,8 @@ class PreviewOptions:
     """More lines than this are decimated (seeded random subset) for the preview."""
     max_points: int = 200_000
     """More points than this are decimated for the preview."""
+    max_frusta: int = 40
+    """At most this many keyframe frusta are drawn (every k-th keyframe)."""
     palette: str = "okabe-ito"
     """Axis palette name from papl_mapper.palette.PALETTES."""
     turntable: Literal["", "gif", "mp4"] = ""
@@ -218,7 +220,10 @@ def prepare_scene(m: Map, options: PreviewOptions) -> Scene:
     centres = m.keyframes.T_wc[:, :3, 3] if options.show_trajectory else np.zeros((0, 3))
     frusta = np.zeros((0, 5, 3))
     if options.show_frusta and len(m.keyframes):
-        frusta = _frusta(m, _robust_diagonal(m) * 0.03)
+        step = max(1, math.ceil(len(m.keyframes) / options.max_frusta))
+        frusta = _frusta(m, _robust_diagonal(m) * 0.02)[::step]
+        if step > 1:
+            notes.append(f"every {step}th keyframe frustum drawn")
     legend = [
         (f"{name}  ({int((axis == a).sum()):,})", tuple(int(c) for c in col))
         for a, (name, col) in enumerate(

@@ -340,34 +340,38 @@ def _section_timings(summary: dict[str, Any] | None) -> str:
     return out + f"<table><tr><th>stage</th><th>seconds</th><th>share</th><th></th></tr>{rows}</table>"
 
 
-def _per_frame(run: RunFolder) -> tuple[np.ndarray, dict[str, np.ndarray], str] | None:
+def per_frame_counts(run: RunFolder) -> tuple[np.ndarray, dict[str, np.ndarray], str] | None:
+    """(x, {series: counts}, x label): summary.json `per_frame`, else observations per keyframe of the map."""
     pf = _get(run.summary, "per_frame")
     if isinstance(pf, dict) and isinstance(pf.get("frame"), list) and pf["frame"]:
         n = len(pf["frame"])
-        series = {
-            k: np.asarray(v, np.float64)
-            for k, v in pf.items()
-            if k != "frame" and isinstance(v, list) and len(v) == n
-        }
         try:
+            series = {
+                k: np.asarray(v, np.float64)
+                for k, v in pf.items()
+                if k != "frame" and isinstance(v, list) and len(v) == n
+            }
             return np.asarray(pf["frame"], np.float64), series, "frame"
         except (TypeError, ValueError):
+            run.notes.append("summary.json per_frame holds non-numbers; counts per frame not shown")
             return None
     m = run.map
     if not len(m.keyframes):
         return None
-    kf = m.keyframes.ids
-    pts = (
-        np.array([(m.points.obs_ids[:, 1] == k).sum() for k in kf])
-        if len(m.points.obs_ids)
-        else np.zeros(len(kf))
-    )
-    lns = (
-        np.array([(m.lines.obs_ids[:, 1] == k).sum() for k in kf])
-        if len(m.lines.obs_ids)
-        else np.zeros(len(kf))
-    )
-    return m.keyframes.frame_index.astype(np.float64), {"points": pts, "lines": lns}, "keyframe (frame index)"
+    order = np.argsort(m.keyframes.ids)
+    kf_sorted = m.keyframes.ids[order]
+
+    def per_keyframe(obs_kf: np.ndarray) -> np.ndarray:  # observations per keyframe, in keyframe order
+        counts = np.bincount(np.searchsorted(kf_sorted, obs_kf), minlength=len(kf_sorted))
+        out = np.empty(len(kf_sorted))
+        out[order] = counts[: len(kf_sorted)]
+        return out
+
+    by_frame = np.argsort(m.keyframes.frame_index, kind="stable")
+    pts = per_keyframe(m.points.obs_ids[:, 1])[by_frame]
+    lns = per_keyframe(m.lines.obs_ids[:, 1])[by_frame]
+    frames = m.keyframes.frame_index[by_frame].astype(np.float64)
+    return frames, {"points": pts, "lines": lns}, "keyframe (frame index)"
 
 
 def _section_plots(run: RunFolder, options: ReportOptions) -> str:
@@ -399,7 +403,7 @@ def _section_plots(run: RunFolder, options: ReportOptions) -> str:
             "line direction stereonet",
         ),
     ]
-    pf = _per_frame(run)
+    pf = per_frame_counts(run)
     if pf is not None and pf[1]:
         figs.append(_img(plots.per_frame_counts(pf[0], pf[1], pf[2]), "counts per frame"))
     else:

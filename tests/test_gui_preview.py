@@ -236,6 +236,17 @@ def test_huge_map_is_decimated_and_says_so(tmp_path):
     np.testing.assert_array_equal(scene.endpoints_w, again.endpoints_w)
 
 
+def test_frusta_are_thinned_and_point_forward():
+    from .conftest import make_map
+
+    m = make_map(n_kf=100)
+    scene = P.prepare_scene(m, _opts(show_frusta=True, max_frusta=10))
+    assert len(scene.frusta_w) == 10 and any("every 10th keyframe" in n for n in scene.notes)
+    # identity rotations: the image corners lie in front of the apex (+z of the camera = +z of the world)
+    np.testing.assert_allclose(scene.frusta_w[:, 0], m.keyframes.T_wc[::10, :3, 3])
+    assert (scene.frusta_w[:, 1:, 2] > scene.frusta_w[:, :1, 2]).all()
+
+
 def test_no_backend_is_a_clear_error(tmp_path):
     """Simulate missing GL libraries: broken libEGL/libOSMesa shadow the real ones."""
     fake = tmp_path / "fakegl"

@@ -193,6 +193,20 @@ def test_bad_sources_are_input_errors(tmp_path):
     assert not (tmp_path / "r.html").exists()
 
 
+def test_per_keyframe_counts_from_map_observations():
+    """Without summary.json, counts per keyframe come from the map's observations."""
+    from papl_mapper.gui.report import load_run, per_frame_counts
+
+    from .conftest import make_map
+
+    m = make_map(n_kf=5, n_pts=50, n_lines=30)  # points seen in keyframes 0 and 1, lines in keyframe 0
+    x, series, label = per_frame_counts(load_run(m))
+    np.testing.assert_array_equal(x, m.keyframes.frame_index)
+    np.testing.assert_array_equal(series["points"], [50, 50, 0, 0, 0])
+    np.testing.assert_array_equal(series["lines"], [30, 0, 0, 0, 0])
+    assert "keyframe" in label
+
+
 def test_stereonet_projection_known_values():
     xy = stereonet_xy(np.array([[0, 0, 1.0], [1, 0, 0], [0, -1, 0], [1, 0, -1], [-1, 0, 1]]))
     np.testing.assert_allclose(xy[0], [0, 0], atol=1e-12)  # vertical at the centre
