@@ -179,7 +179,7 @@ margin:.4em 0}
 .sw{display:inline-block;width:.9em;height:.9em;border:1px solid #333;vertical-align:-.1em;margin-right:.3em}
 .bar{display:inline-block;height:.8em;background:#0072b2;vertical-align:middle}
 pre{background:#f3f3f3;padding:.6em;overflow:auto;font-size:.85em;max-height:30em}
-figure{margin:0}figcaption{font-size:.85em;color:#555}
+figure{margin:0}figure.plot{max-width:760px}figcaption{font-size:.85em;color:#555}
 """
 
 
@@ -201,7 +201,12 @@ def _num(v: Any, fmt: str = "{:,.4g}") -> str:
     if isinstance(v, (int, np.integer)):
         return f"{int(v):,}"
     if isinstance(v, (float, np.floating)):
-        return fmt.format(float(v)) if np.isfinite(v) else _e(v)
+        v = float(v)
+        if not np.isfinite(v):
+            return _e(v)
+        if 1e3 <= abs(v) < 1e12:  # thousands separated, 4 significant digits at least
+            return f"{v:,.0f}"
+        return f"{v:.4g}"
     return _e(v)
 
 
@@ -404,10 +409,12 @@ def _section_plots(run: RunFolder, options: ReportOptions) -> str:
         ),
     ]
     pf = per_frame_counts(run)
-    if pf is not None and pf[1]:
+    if pf is not None and pf[1] and any(np.any(v != 0) for v in pf[1].values()):
         figs.append(_img(plots.per_frame_counts(pf[0], pf[1], pf[2]), "counts per frame"))
     else:
-        figs.append(f"<p>counts per frame: {_na('no per-frame data and no keyframes')}</p>")
+        figs.append(
+            f"<p>counts per frame: {_na('no per-frame data in summary.json, no observations in the map')}</p>"
+        )
     return (
         "<h2>Plots</h2><div class='plots'>"
         + "".join(f"<figure class='plot'>{f}</figure>" for f in figs)

@@ -276,3 +276,63 @@ def test_cli_report(tmp_path, capsys):
     assert (run / "report.html").exists()
     assert main(["report", str(tmp_path / "missing")]) == 2
     assert "missing" in capsys.readouterr().err
+
+
+def test_ground_truth_section_renders_the_agreed_eval_api(tmp_path, monkeypatch):
+    """The report's use of `papl_mapper.eval.evaluate` per the agreed API, with a stand-in result."""
+    import dataclasses
+
+    import papl_mapper.eval as eval_pkg
+
+    @dataclasses.dataclass
+    class FakeResult:
+        ate_rmse: float = 0.0123
+        ate_rmse_rel_path: float = 0.0042
+        rpe_trans: float = 0.0031
+        rpe_rot_deg: float = 0.21
+        scale: float = 1.75
+        sim3: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+        ate_per_pose: tuple = (np.linspace(10, 20, 11), np.linspace(0.0, 0.02, 11))
+        line_recall: dict = dataclasses.field(default_factory=lambda: {"0.05": 0.81, "0.10": 0.93})
+        line_precision: dict = dataclasses.field(default_factory=lambda: {"0.05": 0.77, "0.10": 0.9})
+        axis_errors_deg: list = dataclasses.field(default_factory=lambda: [0.12, 0.34, 0.56])
+        n_matched_poses: int = 11
+
+        def table(self) -> str:
+            return "ATE RMSE  0.0123 <aligned>"
+
+    calls = []
+
+    def fake_evaluate(gt_dir, result, trajectory_tum=None, config=None):
+        calls.append((gt_dir, result, trajectory_tum))
+        return FakeResult()
+
+    monkeypatch.setattr(eval_pkg, "evaluate", fake_evaluate, raising=False)
+    run = _run_folder(tmp_path)
+    text = build_report_html(run, gt_dir=tmp_path / "gt", options=ReportOptions(previews=False))
+    p = _parse(text)
+    _assert_self_contained(p)
+    body = " ".join(p.text)
+    assert calls and calls[0][0] == tmp_path / "gt" and calls[0][2] == run / "trajectory.tum"
+    assert isinstance(calls[0][1], Map)
+    for s in (
+        "0.0123",
+        "0.0042",
+        "1.75",
+        "line recall @ 0.05",
+        "0.81",
+        "line precision @ 0.10",
+        "0.34",
+        "ATE RMSE  0.0123 <aligned>",
+    ):
+        assert s in body, s
+    assert len([u for _, _, u in p.urls if u.startswith("data:image/png")]) == 4  # 3 plots + ATE over time
+
+    def failing(*a, **k):
+        raise InputError(f"{tmp_path / 'gt'}: gt/trajectory.tum missing")
+
+    monkeypatch.setattr(eval_pkg, "evaluate", failing, raising=False)
+    body = " ".join(
+        _parse(build_report_html(run, gt_dir=tmp_path / "gt", options=ReportOptions(previews=False))).text
+    )
+    assert "gt/trajectory.tum missing" in body
