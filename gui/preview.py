@@ -163,6 +163,8 @@ def find_offscreen_backend(env: dict[str, str] | None = None) -> str:
     env = dict(os.environ if env is None else env)
     forced = env.get("VTK_DEFAULT_OPENGL_WINDOW")
     candidates = list(BACKENDS)
+    if env.get("DISPLAY"):
+        candidates.append(("vtkXOpenGLRenderWindow", "X11", "a reachable X server at DISPLAY"))
     if forced and forced not in [c[0] for c in BACKENDS]:
         candidates.insert(0, (forced, forced, "the libraries it needs"))
     failures = []

@@ -177,6 +177,12 @@ def test_legend_swatches_in_top_right_corner(four_views, building):
         assert exact > 50, f"legend swatch {tuple(c)} missing ({exact} px)"
 
 
+def test_same_map_same_options_same_image(tmp_path, building):
+    a = P.render_views(building, tmp_path / "a", _opts(views=("top",), show_points=True, max_points=100))
+    b = P.render_views(building, tmp_path / "b", _opts(views=("top",), show_points=True, max_points=100))
+    np.testing.assert_array_equal(_load(a.paths[0]), _load(b.paths[0]))
+
+
 def test_framing_follows_the_map_wherever_it_is_and_keeps_clear_of_the_legend(tmp_path):
     """A map far from the origin and tiny in scale fills the frame the same way, left of the legend."""
     m = building_map(offset=(5000.0, -3000.0, 200.0), scale=0.001)
