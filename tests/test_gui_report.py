@@ -248,6 +248,9 @@ def _gt_folder(tmp_path: Path, m: Map) -> Path:
         )
     )
     (gt / "camera.json").write_text(json.dumps(m.camera.to_dict()))
+    (gt / "scene.json").write_text(
+        json.dumps({"scene": "test-building", "seed": 1, "command": "made by the test"})
+    )
     (gt / "timestamps.txt").write_text("\n".join(f"{t:.6f}" for t in m.keyframes.timestamp) + "\n")
     return gt
 
