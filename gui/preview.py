@@ -170,9 +170,9 @@ def find_offscreen_backend(env: dict[str, str] | None = None) -> str:
     failures = []
     for window_class, name, _packages in candidates:
         ok, detail = _probe(window_class, tuple(sorted(env.items())))
-        if ok:
-            log.debug("off-screen rendering with %s (%s)", name, detail)
-            return window_class
+        if ok:  # `detail` is the class VTK really made (it may fall back by itself, e.g. EGL -> OSMesa)
+            log.debug("off-screen rendering: asked for %s, got %s", name, detail)
+            return detail
         failures.append(f"{name}: {detail}")
     raise BackendUnavailableError(
         "no off-screen OpenGL backend works on this machine ("

@@ -273,6 +273,17 @@ def test_no_backend_is_a_clear_error(tmp_path):
     assert "libegl1" in str(err.value) and "libosmesa6" in str(err.value)
 
 
+def test_falls_back_to_osmesa_without_egl(tmp_path):
+    """With libEGL broken (shadowed by an empty file), the probe picks OSMesa."""
+    fake = tmp_path / "noegl"
+    fake.mkdir()
+    for name in ("libEGL.so.1", "libEGL.so", "libEGL_mesa.so.0"):
+        (fake / name).write_bytes(b"")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "VTK_DEFAULT_OPENGL_WINDOW")}
+    env["LD_LIBRARY_PATH"] = str(fake)
+    assert P.find_offscreen_backend(env) == "vtkOSOpenGLRenderWindow"
+
+
 def test_backend_failure_writes_nothing(tmp_path, monkeypatch, building):
     def broken(env=None):
         raise BackendUnavailableError("no off-screen OpenGL backend (simulated)")
