@@ -11,6 +11,7 @@ OSMesa) before VTK is touched in this process, since a missing library makes VTK
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -549,7 +550,7 @@ def _turntable(
     centre = 0.5 * (frame_pts.min(axis=0) + frame_pts.max(axis=0)) if len(frame_pts) else np.zeros(3)
     radius = float(np.linalg.norm(frame_pts - centre, axis=1).max()) if len(frame_pts) else 1.0
     radius = radius or 1.0
-    small = PreviewOptions(**{**options.__dict__, "width": w, "height": h})
+    small = dataclasses.replace(options, width=w, height=h)
     frames = []
     base = np.asarray(_VIEW_GEOMETRY["isometric"][0])
     for k in range(options.turntable_frames):
