@@ -542,7 +542,7 @@ def _turntable(
     progress: Callable[[int, int, str], None] | None,
     total: int,
 ) -> Path:
-    """One turn about the vertical axis at a fixed zoom; GIF via imageio or MP4 via OpenCV."""
+    """One turn about the vertical axis at a fixed zoom; GIF via Pillow or MP4 via OpenCV."""
     w, h = (int(v) for v in options.turntable_size)
     band = _band_height(h)
     size = (w, h - band)
@@ -569,9 +569,13 @@ def _turntable(
     os.close(fd)
     try:
         if options.turntable == "gif":
-            import imageio.v2 as imageio
+            from PIL import Image
 
-            imageio.mimsave(tmp, frames, format="GIF", duration=1000 / options.turntable_fps, loop=0)
+            images = [Image.fromarray(np.ascontiguousarray(f)) for f in frames]
+            duration = round(1000 / options.turntable_fps)
+            images[0].save(
+                tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0
+            )
         else:
             import cv2
 

@@ -302,11 +302,12 @@ def test_the_working_backend_is_found():
 
 def test_turntable_gif_and_mp4(tmp_path, building):
     import cv2
-    import imageio.v2 as imageio
+    from PIL import Image, ImageSequence
 
     o = _opts(views=("isometric",), turntable="gif", turntable_frames=6, turntable_size=(320, 240))
     res = P.render_views(building, tmp_path, o)
-    frames = imageio.mimread(res.turntable)
+    with Image.open(res.turntable) as gif:
+        frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(gif)]
     assert len(frames) == 6 and frames[0].shape[:2] == (240, 320)
     assert np.abs(frames[0].astype(float) - frames[3].astype(float)).mean() > 1.0  # it turns
     o.turntable = "mp4"
