@@ -7,7 +7,7 @@ import pytest
 
 from papl_mapper.map import Camera
 from papl_mapper.mapping.incremental import register_keyframes, triangulate_multiview
-from papl_mapper.mapping.tracks import Tracks
+from papl_mapper.tracks import Tracks
 
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
 MAX_REL_POSITION_ERR = 0.02  # of the path length, after Sim(3) alignment

@@ -15,7 +15,7 @@ import numpy as np
 
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.tracking import PnPConfig, track_pnp
-from papl_mapper.mapping.tracks import Tracks
+from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The mapping stage's input: 2D observations of a recording with persistent track ids.
+"""Frontend output, mapping input: 2D observations of a recording with persistent track ids.
 
 The frontend produces these from images; tests and benchmarks produce them by projecting a
 known scene. Everything is undistorted pixels in the OpenCV convention, struct-of-arrays,
