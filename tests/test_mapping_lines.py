@@ -1,0 +1,119 @@
+"""Line triangulation from segment tracks: exact on clean data, bounded on noise, degenerate cases dropped."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from papl_mapper.map import Camera
+from papl_mapper.mapping.lines import (
+    LineInitConfig,
+    endpoint_extent,
+    line_through_planes,
+    observation_planes_w,
+    reprojection_rms,
+    triangulate_lines,
+)
+
+CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
+EXACT_TOL = 1e-6  # world units, noise-free
+NOISY_ENDPOINT_TOL = 0.05  # world units at ~5 units depth, 0.5 px noise
+
+
+def _T_wc(centre: np.ndarray, yaw: float) -> np.ndarray:
+    fwd = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    down = np.array([0.0, 0.0, -1.0])
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([np.cross(down, fwd), down, fwd])
+    T[:3, 3] = centre
+    return T
+
+
+def _scene(noise_px=0.0, seed=0):
+    """Axis-aligned segments on a wall 6 units ahead, seen by 8 cameras moving sideways and up/down."""
+    rng = np.random.default_rng(seed)
+    axes = np.eye(3)[[2, 1]]  # vertical, along the wall
+    mids = np.column_stack([np.full(20, 6.0), rng.uniform(-2, 2, 20), rng.uniform(-1, 1, 20)])
+    lab = np.arange(20) % 2
+    segs = np.stack([mids - 0.4 * axes[lab], mids + 0.4 * axes[lab]], axis=1)
+    ks = np.arange(8)
+    poses = np.stack([_T_wc(np.array([-0.2 * k, 0.25 * k - 1, 0.5 * np.cos(k)]), 0.05 * k) for k in ks])
+    track, T, xy, vp = [], [], [], []
+    for T_wc in poses:
+        T_cw = np.linalg.inv(T_wc)
+        for i, s in enumerate(segs):
+            c = s @ T_cw[:3, :3].T + T_cw[:3, 3]
+            uv = (c @ CAM.K.T)[:, :2] / c[:, 2:3]
+            track.append(i)
+            T.append(T_wc)
+            xy.append(uv.ravel() + rng.normal(0, noise_px, 4))
+            vp.append(axes[lab[i]])
+    return segs, np.array(track), np.stack(T), np.array(xy), np.array(vp)
+
+
+def _endpoint_error(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Largest endpoint distance per segment, whichever way round the endpoints are."""
+    a = np.linalg.norm(est - gt, axis=2).max(1)
+    b = np.linalg.norm(est[:, ::-1] - gt, axis=2).max(1)
+    return np.minimum(a, b)
+
+
+def test_planes_contain_the_segment():
+    segs, track, T, xy, _ = _scene()
+    planes = observation_planes_w(T, xy, CAM.K)
+    X = segs[track]  # (n, 2, 3)
+    res = np.einsum("ni,nki->nk", planes[:, :3], X) + planes[:, 3:4]
+    assert np.abs(res).max() < EXACT_TOL
+
+
+def test_exact_lines_with_and_without_vanishing_directions():
+    segs, track, T, xy, vp = _scene()
+    for dirs in (vp, np.full_like(vp, np.nan)):
+        est = triangulate_lines(track, T, xy, dirs, CAM.K)
+        assert len(est.track) == 20
+        assert est.from_vp.all() == np.isfinite(dirs).all()
+        assert _endpoint_error(est.endpoints_w, segs[est.track]).max() < EXACT_TOL
+        assert est.rms_px.max() < 1e-6
+
+
+def test_noisy_lines_known_direction():
+    """A known direction removes the direction error and keeps the position error of the free fit."""
+    segs, track, T, xy, vp = _scene(noise_px=0.5, seed=1)
+    perp, angle = [], []
+    for dirs in (vp, np.full_like(vp, np.nan)):
+        est = triangulate_lines(track, T, xy, dirs, CAM.K)
+        assert np.median(_endpoint_error(est.endpoints_w, segs[est.track])) < NOISY_ENDPOINT_TOL
+        d = est.endpoints_w[:, 1] - est.endpoints_w[:, 0]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        off = segs[est.track].mean(1) - est.endpoints_w[:, 0]
+        perp.append(np.median(np.linalg.norm(off - np.einsum("ni,ni->n", off, d)[:, None] * d, axis=1)))
+        cos = np.abs(np.einsum("ni,ni->n", d, vp[est.track]))  # rows 0..19: the first view of tracks 0..19
+        angle.append(np.degrees(np.arccos(np.clip(cos, 0, 1))).max())
+    assert angle[0] < 1e-6 < 0.1 < angle[1]
+    assert perp[0] < 1.2 * perp[1]
+
+
+def test_degenerate_tracks_are_dropped():
+    segs, track, T, xy, vp = _scene()
+    one_view = track != 3
+    keep = one_view | (np.arange(len(track)) == np.flatnonzero(track == 3)[0])
+    est = triangulate_lines(track[keep], T[keep], xy[keep], vp[keep], CAM.K)
+    assert 3 not in est.track and len(est.track) == 19
+    # every view from the same place: no parallax
+    same = np.repeat(T[:1], len(T), axis=0)
+    est = triangulate_lines(
+        track[track == 0], same[track == 0], np.repeat(xy[:1], 8, 0), vp[track == 0], CAM.K
+    )
+    assert len(est.track) == 0
+    # a wrong direction gives a large reprojection error and is refused
+    bad = np.tile(np.array([1.0, 0.0, 0.0]), (len(vp), 1))
+    est = triangulate_lines(track, T, xy, bad, CAM.K, LineInitConfig(max_error_px=2.0))
+    assert len(est.track) == 0
+
+
+def test_helpers_agree():
+    segs, track, T, xy, _ = _scene()
+    sel = track == 5
+    p, d = line_through_planes(observation_planes_w(T[sel], xy[sel], CAM.K), T[sel, :3, 3])
+    assert reprojection_rms(p, d, T[sel], xy[sel], CAM.K).max() < 1e-6
+    ends = endpoint_extent(p, d, T[sel], xy[sel], CAM.K, 5.0)
+    assert _endpoint_error(ends[None], segs[5:6])[0] < EXACT_TOL
