@@ -1,0 +1,393 @@
+"""Decoding of recordings: video files through OpenCV's FFmpeg backend, and image folders.
+
+`open_recording` checks the input once (it decodes the first frame) and returns a `Recording`
+that can be iterated any number of times; each pass decodes in a background thread into a
+bounded queue so decoding overlaps processing. A truncated or partly corrupt stream yields
+what is readable; where it stopped is logged and kept on the Recording (`stopped_early`).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import re
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from papl_mapper.errors import InputError
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
+_END = object()
+
+
+@dataclass
+class Frame:
+    """One decoded frame: its index in the source, its time, and the (possibly downscaled) image."""
+
+    index: int  # index of the frame in the source (before the step is applied)
+    timestamp_s: float
+    image: np.ndarray  # (H, W, 3) uint8 BGR or (H, W) uint8 gray
+
+
+@dataclass
+class Recording:
+    """A video file or image folder opened for decoding, with the frame selection applied.
+
+    `width`/`height` are the size of the yielded images (after `max_size`); `scale_xy` maps
+    source pixels to them (use `papl_mapper.frontend.camera.scale_camera` on a source camera).
+    `stopped_early`/`stop_message` are set by a pass that ended before the stream's announced end.
+    """
+
+    path: Path
+    kind: str  # "video" or "images"
+    source_width: int
+    source_height: int
+    width: int
+    height: int
+    fps: float  # frames per second of the source (nominal)
+    frame_count: int  # frames announced by the container or files in the folder (0 if unknown)
+    step: int = 1
+    start_s: float | None = None
+    end_s: float | None = None
+    gray: bool = False
+    prefetch: int = 8
+    image_files: list[Path] = field(default_factory=list)
+    image_timestamps: np.ndarray | None = None  # (N,) seconds for image folders, None -> index / fps
+    stopped_early: bool = False
+    stopped_at_frame: int | None = None  # source index of the last frame decoded in a pass that ended early
+    stop_message: str = ""
+    decoded_frames: int = 0  # frames yielded by the last complete pass
+
+    @property
+    def scale_xy(self) -> tuple[float, float]:
+        return self.width / self.source_width, self.height / self.source_height
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.width, self.height
+
+    def expected_frames(self) -> int:
+        """Frames a pass will yield if the stream is intact (0 when the container does not say)."""
+        if self.frame_count <= 0:
+            return 0
+        indices = np.arange(self.frame_count)
+        if self.kind == "images" and self.image_timestamps is not None:
+            times = self.image_timestamps
+        else:
+            times = indices / self.fps
+        keep = np.ones(self.frame_count, bool)
+        if self.start_s is not None:
+            keep &= times >= self.start_s - 1e-9
+        if self.end_s is not None:
+            keep &= times <= self.end_s + 1e-9
+        kept = indices[keep]
+        if len(kept) == 0:
+            return 0
+        return len(kept[:: self.step])
+
+    def __iter__(self) -> Iterator[Frame]:
+        """Decode in a background thread (bounded queue); stop the thread if the consumer stops."""
+        q: queue.Queue = queue.Queue(maxsize=max(1, self.prefetch))
+        stop = threading.Event()
+
+        def put(item: object) -> bool:
+            while not stop.is_set():
+                try:
+                    q.put(item, timeout=0.1)
+                    return True
+                except queue.Full:
+                    continue
+            return False
+
+        def worker() -> None:
+            try:
+                for frame in self._decode():
+                    if not put(frame):
+                        return
+            except BaseException as exc:  # handed to the consumer, re-raised there
+                put(exc)
+                return
+            put(_END)
+
+        thread = threading.Thread(target=worker, name=f"decode-{self.path.name}", daemon=True)
+        thread.start()
+        try:
+            while True:
+                item = q.get()
+                if item is _END:
+                    return
+                if isinstance(item, BaseException):
+                    raise item
+                yield item
+        finally:
+            stop.set()
+            thread.join(timeout=5.0)
+
+    def frames(self) -> Iterator[Frame]:
+        """Decode in the calling thread (no prefetch); same frames as iterating the Recording."""
+        return self._decode()
+
+    # -- decoding -----------------------------------------------------------------------------
+
+    def _prepare(self, image: np.ndarray) -> np.ndarray:
+        if image.ndim == 3 and image.shape[2] == 4:
+            image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+        if image.ndim == 2 and not self.gray:
+            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        if image.shape[1] != self.width or image.shape[0] != self.height:
+            image = cv2.resize(image, (self.width, self.height), interpolation=cv2.INTER_AREA)
+        if self.gray and image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        return image
+
+    def _in_range(self, t: float) -> int:
+        """-1 before the time range, 0 inside, 1 after it."""
+        if self.start_s is not None and t < self.start_s - 1e-9:
+            return -1
+        if self.end_s is not None and t > self.end_s + 1e-9:
+            return 1
+        return 0
+
+    def _decode(self) -> Iterator[Frame]:
+        self.stopped_early, self.stopped_at_frame, self.stop_message = False, None, ""
+        source = self._decode_video() if self.kind == "video" else self._decode_images()
+        n = 0
+        for frame in source:
+            n += 1
+            yield frame
+        self.decoded_frames = n
+
+    def _decode_video(self) -> Iterator[Frame]:
+        cap = cv2.VideoCapture(str(self.path), cv2.CAP_FFMPEG)
+        if not cap.isOpened():
+            raise InputError(f"{self.path}: the video could not be reopened for decoding")
+        try:
+            index = -1
+            kept = 0
+            last_ok = None
+            while True:
+                if not cap.grab():
+                    break
+                index += 1
+                t = _video_time(cap, index, self.fps)
+                where = self._in_range(t)
+                if where > 0:
+                    return
+                if where < 0:
+                    continue
+                if kept % self.step:
+                    kept += 1
+                    continue
+                kept += 1
+                ok, image = cap.retrieve()
+                if not ok or image is None:
+                    self._mark_stop(index - 1, f"frame {index} could not be decoded")
+                    return
+                last_ok = index
+                yield Frame(index, t, self._prepare(image))
+            announced = self.frame_count
+            if announced > 0 and index + 1 < announced and self.end_s is None:
+                self._mark_stop(
+                    last_ok if last_ok is not None else index,
+                    f"the stream ended after {index + 1} of {announced} announced frames "
+                    "(truncated or corrupt)",
+                )
+        finally:
+            cap.release()
+
+    def _decode_images(self) -> Iterator[Frame]:
+        kept = 0
+        for index, path in enumerate(self.image_files):
+            t = float(self.image_timestamps[index]) if self.image_timestamps is not None else index / self.fps
+            where = self._in_range(t)
+            if where > 0:
+                return
+            if where < 0:
+                continue
+            if kept % self.step:
+                kept += 1
+                continue
+            kept += 1
+            image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR)
+            if image is None:
+                self._mark_stop(index - 1, f"{path.name} could not be read")
+                return
+            if image.shape[:2] != (self.source_height, self.source_width):
+                raise InputError(
+                    f"{path}: {image.shape[1]}x{image.shape[0]} differs from the folder's first image "
+                    f"({self.source_width}x{self.source_height}); all images must have one size"
+                )
+            yield Frame(index, t, self._prepare(image))
+
+    def _mark_stop(self, last_index: int, message: str) -> None:
+        self.stopped_early = True
+        self.stopped_at_frame = last_index
+        self.stop_message = message
+        log.warning("%s: %s; kept the frames up to index %d", self.path, message, last_index)
+
+
+def _video_time(cap: cv2.VideoCapture, index: int, fps: float) -> float:
+    """The frame's presentation time from the container, or index / fps when it gives none."""
+    ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+    if ms is not None and np.isfinite(ms) and (ms > 0 or index == 0):
+        return ms / 1000.0
+    return index / fps if fps > 0 else float(index)
+
+
+def _natural_key(path: Path) -> list[object]:
+    return [int(tok) if tok.isdigit() else tok.lower() for tok in re.split(r"(\d+)", path.name)]
+
+
+def read_timestamps(path: Path, names: list[str] | None = None) -> np.ndarray:
+    """Timestamps in seconds from a text file: one number per line (frame order), or lines
+    `<time> <file name>` / `<file name> <time>` (TUM style), matched to `names` when given.
+    Lines starting with '#' are comments. Raises InputError naming the file and the bad line.
+    """
+    by_name: dict[str, float] = {}
+    ordered: list[float] = []
+    for lineno, raw in enumerate(Path(path).read_text().splitlines(), 1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        tokens = line.replace(",", " ").split()
+        numbers, others = [], []
+        for tok in tokens:
+            try:
+                numbers.append(float(tok))
+            except ValueError:
+                others.append(tok)
+        if not numbers:
+            raise InputError(f"{path}: line {lineno} holds no timestamp: {line!r}")
+        if others:
+            by_name[Path(others[0]).name] = numbers[0]
+        else:
+            # "index time" pairs keep the last number; a lone number is the time
+            ordered.append(numbers[-1])
+    if by_name and names is not None:
+        missing = [n for n in names if n not in by_name]
+        if missing:
+            raise InputError(f"{path}: no timestamp for {missing[0]} (and {len(missing) - 1} more images)")
+        return np.array([by_name[n] for n in names], np.float64)
+    values = np.array(ordered or list(by_name.values()), np.float64)
+    if names is not None and len(values) != len(names):
+        raise InputError(f"{path}: {len(values)} timestamps for {len(names)} images; give one per image")
+    return values
+
+
+def _fit_size(width: int, height: int, max_size: int | None) -> tuple[int, int]:
+    if max_size is None or max(width, height) <= max_size:
+        return width, height
+    s = max_size / max(width, height)
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
+def open_recording(
+    path: str | Path,
+    step: int = 1,
+    start_s: float | None = None,
+    end_s: float | None = None,
+    max_size: int | None = None,
+    *,
+    gray: bool = False,
+    fps: float | None = None,
+    timestamps: str | Path | None = None,
+    prefetch: int = 8,
+) -> Recording:
+    """Open a video file or an image folder; check it decodes at least one frame.
+
+    step keeps every step-th frame of the time range [start_s, end_s]; max_size bounds the
+    longer image side (downscaled with INTER_AREA). For image folders, `fps` (default 30)
+    gives timestamps unless a timestamps file is given or `timestamps.txt` lies in the folder.
+    Raises InputError for a missing path, a file that is not a video, or no decodable frame.
+    """
+    path = Path(path)
+    if step < 1:
+        raise InputError(f"{path}: frame step must be >= 1, got {step}")
+    if start_s is not None and end_s is not None and end_s < start_s:
+        raise InputError(f"{path}: time range end {end_s} s is before its start {start_s} s")
+    if max_size is not None and max_size < 16:
+        raise InputError(f"{path}: max_size {max_size} is too small (>= 16 pixels)")
+    if not path.exists():
+        raise InputError(f"{path}: no such file or folder; give a video file or a folder of images")
+    common = dict(step=step, start_s=start_s, end_s=end_s, gray=gray, prefetch=prefetch)
+    if path.is_dir():
+        rec = _open_folder(path, fps, timestamps, max_size, common)
+    else:
+        rec = _open_video(path, max_size, common)
+    try:
+        first = next(iter(rec.frames()), None)
+    except InputError:
+        raise
+    if first is None:
+        where = "" if start_s is None and end_s is None else f" in the time range {start_s}..{end_s} s"
+        raise InputError(f"{path}: no decodable frame{where}; check the file and the time range")
+    log.info(
+        "%s: %s %dx%d (source %dx%d), %.3g fps, %d frames announced",
+        path,
+        rec.kind,
+        rec.width,
+        rec.height,
+        rec.source_width,
+        rec.source_height,
+        rec.fps,
+        rec.frame_count,
+    )
+    return rec
+
+
+def _open_video(path: Path, max_size: int | None, common: dict) -> Recording:
+    if path.stat().st_size == 0:
+        raise InputError(f"{path}: the file is empty; give a video file")
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    try:
+        if not cap.isOpened():
+            raise InputError(f"{path}: not a video FFmpeg can read (unknown format, or corrupt header)")
+        ok, image = cap.read()
+        if not ok or image is None:
+            raise InputError(f"{path}: no decodable frame; the stream is empty or corrupt")
+        h, w = image.shape[:2]
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        if not np.isfinite(fps) or fps <= 0 or fps > 1000:
+            log.warning("%s: the container gives no frame rate; assuming 30 fps", path)
+            fps = 30.0
+        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    finally:
+        cap.release()
+    width, height = _fit_size(w, h, max_size)
+    return Recording(path, "video", w, h, width, height, fps, max(count, 0), **common)
+
+
+def _open_folder(
+    path: Path, fps: float | None, timestamps: str | Path | None, max_size: int | None, common: dict
+) -> Recording:
+    files = sorted(
+        (p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key
+    )
+    if not files:
+        raise InputError(f"{path}: the folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
+    ts_path = Path(timestamps) if timestamps is not None else path / "timestamps.txt"
+    stamps = None
+    if ts_path.exists():
+        stamps = read_timestamps(ts_path, [f.name for f in files])
+        if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+            raise InputError(f"{ts_path}: timestamps must increase with the sorted image names")
+    elif timestamps is not None:
+        raise InputError(f"{ts_path}: timestamps file not found")
+    first = cv2.imread(str(files[0]), cv2.IMREAD_UNCHANGED)
+    if first is None:
+        raise InputError(f"{files[0]}: not an image OpenCV can read")
+    h, w = first.shape[:2]
+    if fps is None:
+        fps = float(1.0 / np.median(np.diff(stamps))) if stamps is not None and len(stamps) > 1 else 30.0
+    width, height = _fit_size(w, h, max_size)
+    n = len(files)
+    return Recording(
+        path, "images", w, h, width, height, fps, n, image_files=files, image_timestamps=stamps, **common
+    )
