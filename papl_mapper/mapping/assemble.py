@@ -1,0 +1,144 @@
+"""Build the Map from registered keyframes, triangulated points and lines, and rotate it upright.
+
+Keyframe ids are the Tracks frame rows, point and line ids their track ids, so every
+observation in the Map refers back to the recording without a lookup table.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from papl_mapper.errors import GeometryError
+from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
+from papl_mapper.mapping.lines import LineEstimates
+from papl_mapper.tracks import Tracks
+
+
+def vp_directions_w(tracks: Tracks, frame: np.ndarray, label: np.ndarray, T_wc: np.ndarray) -> np.ndarray:
+    """World vanishing direction (n,3) of each segment observation, NaN for non-structural ones."""
+    out = np.full((len(frame), 3), np.nan)
+    ok = label >= 0
+    if ok.any():
+        d_c = tracks.vp_dirs_c[frame[ok], label[ok]]
+        out[ok] = np.einsum("nij,nj->ni", T_wc[ok, :3, :3], d_c)
+    return out
+
+
+def assemble_map(
+    tracks: Tracks,
+    T_wc_by_frame: dict[int, np.ndarray],
+    points_w: dict[int, np.ndarray],
+    lines: LineEstimates,
+    axes: Axes | None = None,
+    line_weights: np.ndarray | None = None,
+    metadata: dict | None = None,
+) -> Map:
+    """A Map of the registered keyframes, with the observations of points and lines in them.
+
+    `line_weights` (M,A) are the soft axis associations of `lines` to `axes`; lines with no
+    weight stay orthonormal, the others are anchored in their first observing keyframe.
+    """
+    frames = np.array(sorted(T_wc_by_frame), np.int64)
+    kf = Keyframes(
+        frames,
+        tracks.frame_index[frames].astype(np.int64),
+        tracks.timestamp[frames].astype(np.float64),
+        np.stack([T_wc_by_frame[int(f)] for f in frames]) if len(frames) else np.zeros((0, 4, 4)),
+    )
+    pids = np.array(sorted(points_w), np.int64)
+    xyz = np.stack([points_w[int(p)] for p in pids]) if len(pids) else np.zeros((0, 3))
+    sel = np.isin(tracks.point_track, pids) & np.isin(tracks.point_frame, frames)
+    pts = Points(
+        pids,
+        xyz,
+        np.full((len(pids), 3), 160, np.uint8),
+        np.column_stack([tracks.point_track[sel], tracks.point_frame[sel]]).astype(np.int64),
+        tracks.point_uv[sel].astype(np.float64),
+    )
+    axes = axes or Axes.empty()
+    n_axes = len(axes)
+    weights = np.zeros((len(lines.track), n_axes)) if line_weights is None else np.asarray(line_weights)
+    anchored = weights.sum(axis=1) > 0 if n_axes else np.zeros(len(lines.track), bool)
+    sel = np.isin(tracks.line_track, lines.track) & np.isin(tracks.line_frame, frames)
+    obs_ids = np.column_stack([tracks.line_track[sel], tracks.line_frame[sel]]).astype(np.int64)
+    ref = np.full(len(lines.track), -1, np.int64)
+    inv_depth = np.full(len(lines.track), np.nan)
+    if len(obs_ids):
+        order = np.lexsort((obs_ids[:, 1], obs_ids[:, 0]))
+        first = order[np.r_[True, obs_ids[order[1:], 0] != obs_ids[order[:-1], 0]]]
+        first_kf = dict(zip(obs_ids[first, 0].tolist(), obs_ids[first, 1].tolist(), strict=True))
+        ref = np.array([first_kf[int(t)] for t in lines.track], np.int64)
+        T_ref = np.stack([T_wc_by_frame[int(f)] for f in ref]) if len(ref) else np.zeros((0, 4, 4))
+        mid = lines.endpoints_w.mean(axis=1)
+        depth = np.linalg.norm(mid - T_ref[:, :3, 3], axis=1)
+        inv_depth = np.where(anchored, 1.0 / np.maximum(depth, 1e-12), np.nan)
+    ln = Lines(
+        lines.track.astype(np.int64),
+        lines.endpoints_w.astype(np.float64),
+        weights.astype(np.float64),
+        np.where(anchored, LineState.ANCHORED, LineState.ORTHONORMAL).astype(np.int8),
+        np.where(anchored, ref, -1),
+        inv_depth,
+        obs_ids,
+        tracks.line_xy[sel].astype(np.float64),
+    )
+    cam = Camera.from_dict(tracks.camera.to_dict())
+    return Map(cam, kf, pts, ln, axes, dict(metadata or {"units": "arbitrary"}))
+
+
+def vertical_in_world(tracks: Tracks, T_wc_by_frame: dict[int, np.ndarray]) -> np.ndarray | None:
+    """The world 'up' direction from each registered frame's vertical vanishing direction, or None.
+
+    The frontend's vertical direction points up in the camera (towards -y for an upright camera);
+    rotated into the world by each pose, their robust mean is the world vertical.
+    """
+    if len(tracks.vertical_vp) == 0:
+        return None
+    dirs = []
+    for f, T in T_wc_by_frame.items():
+        v = int(tracks.vertical_vp[f])
+        if v < 0:
+            continue
+        d = tracks.vp_dirs_c[f, v]
+        if np.isfinite(d).all():
+            dirs.append(T[:3, :3] @ (d / np.linalg.norm(d)))
+    if not dirs:
+        return None
+    D = np.array(dirs)
+    up = np.median(D, axis=0)
+    for _ in range(3):  # re-centre on the directions near the current estimate
+        up /= np.linalg.norm(up)
+        near = D[D @ up > np.cos(np.radians(5.0))]
+        if len(near) == 0:
+            break
+        up = near.mean(axis=0)
+    return up / np.linalg.norm(up)
+
+
+def rotation_to_z(up_w: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking the unit vector `up_w` to +Z."""
+    up = np.asarray(up_w, np.float64) / np.linalg.norm(up_w)
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(up, z)
+    c = float(up @ z)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def transform_map(m: Map, R: np.ndarray, t: np.ndarray | None = None, scale: float = 1.0) -> Map:
+    """Apply the similarity x -> scale * R x + t to everything in the map (in place), and return it."""
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-9) or np.linalg.det(R) <= 0:
+        raise GeometryError("transform_map needs a proper rotation")
+    t = np.zeros(3) if t is None else np.asarray(t, np.float64)
+    T = m.keyframes.T_wc.copy()
+    T[:, :3, :3] = R @ T[:, :3, :3]
+    T[:, :3, 3] = scale * T[:, :3, 3] @ R.T + t
+    m.keyframes.T_wc = T
+    m.points.xyz = scale * m.points.xyz @ R.T + t
+    m.lines.endpoints_w = scale * m.lines.endpoints_w @ R.T + t
+    m.lines.inverse_depth = m.lines.inverse_depth / scale
+    if len(m.axes):
+        m.axes.directions = m.axes.directions @ R.T
+    return m
