@@ -7,7 +7,10 @@ one row per observation, so mapping never touches images.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import json
+import os
+from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 import numpy as np
 
@@ -67,3 +70,25 @@ class Tracks:
         """Track ids (K,), endpoints (K, 4) and VP labels (K,) of the segments seen in one frame."""
         sel = self.line_frame == frame
         return self.line_track[sel], self.line_xy[sel], self.line_vp[sel]
+
+    def save(self, path: str | Path) -> Path:
+        """Write to one .npz (camera as JSON) under a temporary name, then rename."""
+        path = Path(path)
+        arrays = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "camera"}
+        tmp = path.with_name(f".{path.name}.tmp.npz")
+        np.savez(tmp, camera=np.array(json.dumps(self.camera.to_dict())), **arrays)
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Tracks:
+        """Read a file written by `save`; ValueError if it is not one."""
+        with np.load(path, allow_pickle=False) as z:
+            missing = {f.name for f in fields(cls)} - set(z.files)
+            if missing:
+                raise ValueError(f"{path}: not a tracks file (missing {sorted(missing)})")
+            kw = {f.name: z[f.name] for f in fields(cls) if f.name != "camera"}
+            camera = Camera.from_dict(json.loads(str(z["camera"])))
+        tracks = cls(camera=camera, **kw)
+        tracks.validate()
+        return tracks

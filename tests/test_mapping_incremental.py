@@ -110,3 +110,16 @@ def test_static_camera_cannot_initialise():
     tracks.point_uv = np.stack([uv0[t] for t in tracks.point_track.tolist()])  # nothing moves
     with pytest.raises(InputError, match="could not initialise"):
         register_keyframes(tracks)
+
+
+def test_tracks_save_load_round_trip(tmp_path):
+    tracks, _, _ = make_tracks(n_frames=5)
+    tracks.vertical_vp = np.zeros(5, np.int64)
+    path = tracks.save(tmp_path / "tracks.npz")
+    back = Tracks.load(path)
+    assert back.camera.to_dict() == tracks.camera.to_dict()
+    for name in ("frame_index", "point_uv", "point_track", "vp_dirs_c", "vertical_vp", "line_xy"):
+        assert np.array_equal(getattr(back, name), getattr(tracks, name), equal_nan=True)
+    np.savez(tmp_path / "other.npz", a=np.zeros(3))
+    with pytest.raises(ValueError, match="not a tracks file"):
+        Tracks.load(tmp_path / "other.npz")
