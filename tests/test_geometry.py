@@ -1,0 +1,245 @@
+"""Geometry: analytic Jacobians against finite differences, representations round-trip, triangulation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from papl_mapper import geometry as g
+
+JAC_RTOL = 1e-5  # relative tolerance of analytic vs central-difference Jacobians
+FD_STEP = 1e-6
+K = np.array([[500.0, 0, 320.0], [0, 510.0, 240.0], [0, 0, 1]])
+
+
+def num_jac(f, x0: np.ndarray, retract=None, dim: int | None = None) -> np.ndarray:
+    """Central differences of f at x0 along the local coordinates of `retract` (default: additive)."""
+    dim = x0.size if dim is None else dim
+    cols = []
+    for i in range(dim):
+        d = np.zeros(dim)
+        d[i] = FD_STEP
+        xp = retract(x0, d) if retract else x0 + d
+        xm = retract(x0, -d) if retract else x0 - d
+        cols.append((np.ravel(f(xp)) - np.ravel(f(xm))) / (2 * FD_STEP))
+    return np.stack(cols, -1)
+
+
+def assert_jac(analytic: np.ndarray, numeric: np.ndarray) -> None:
+    scale = max(np.abs(numeric).max(), 1.0)
+    np.testing.assert_allclose(analytic, numeric, atol=JAC_RTOL * scale, rtol=0)
+
+
+def random_pose(rng: np.random.Generator, t_scale: float = 1.0) -> np.ndarray:
+    return g.make_T(g.so3_exp(rng.normal(size=3) * 0.5), rng.normal(size=3) * t_scale)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(7)
+
+
+def test_se3_exp_log_invert(rng):
+    w = rng.normal(size=(20, 3))
+    w *= (rng.uniform(0, 3.1, 20) / np.linalg.norm(w, axis=1))[:, None]
+    np.testing.assert_allclose(g.so3_log(g.so3_exp(w)), w, atol=1e-9)
+    np.testing.assert_allclose(g.so3_log(g.so3_exp(np.array([0, 0, np.pi]))), [0, 0, np.pi], atol=1e-6)
+    T = random_pose(rng)
+    np.testing.assert_allclose(T @ g.invert(T), np.eye(4), atol=1e-12)
+
+
+def test_pose_retraction_matches_gtsam(rng):
+    gtsam = pytest.importorskip("gtsam")
+    T = random_pose(rng)
+    xi = rng.normal(size=6) * 0.3
+    np.testing.assert_allclose(
+        g.retract(T, xi)[:3, :3], gtsam.Pose3(T).retract(xi).matrix()[:3, :3], atol=1e-9
+    )
+
+
+def test_plucker_constructors_and_transform(rng):
+    P1, P2 = rng.normal(size=(2, 5, 3))
+    L = g.plucker_from_endpoints(P1, P2)
+    L2 = g.plucker_from_point_dir(P1, P2 - P1)
+    np.testing.assert_allclose(L, L2, atol=1e-12)
+    T = random_pose(rng)
+    Lc = g.plucker_to_camera(L, T)
+    Tcw = g.invert(T)
+    Lc_ref = g.plucker_from_endpoints(g.transform(Tcw, P1), g.transform(Tcw, P2))
+    np.testing.assert_allclose(Lc, Lc_ref, atol=1e-10)
+    np.testing.assert_allclose(g.plucker_to_world(Lc, T), L, atol=1e-10)
+    assert np.abs(np.sum(L[:, :3] * L[:, 3:], 1)).max() < 1e-12  # Klein constraint
+
+
+def test_plucker_to_camera_jacobians(rng):
+    L = g.plucker_from_endpoints(rng.normal(size=3), rng.normal(size=3) + 2)
+    T = random_pose(rng)
+    _, J_xi, J_L = g.plucker_to_camera(L, T, jacobians=True)
+    assert_jac(J_xi, num_jac(lambda T_: g.plucker_to_camera(L, T_), T, g.retract, 6))
+    assert_jac(J_L, num_jac(lambda L_: g.plucker_to_camera(L_, T), L))
+
+
+def test_projection_matches_projected_endpoints(rng):
+    P1 = np.array([-1.0, 0.3, 4.0])
+    P2 = np.array([1.0, -0.2, 5.0])
+    T = np.eye(4)
+    uv, _ = g.project_points(K, np.stack([T, T]), np.stack([P1, P2]))
+    l = g.project_line(K, g.plucker_from_endpoints(P1, P2))
+    np.testing.assert_allclose(np.concatenate([uv, np.ones((2, 1))], 1) @ l, 0, atol=1e-8 * np.abs(l).max())
+    e = g.endpoint_errors(K, g.plucker_from_endpoints(P1, P2), uv.ravel())
+    np.testing.assert_allclose(e, 0, atol=1e-9)
+    # shifting the observation by 3 px along the line normal gives 3 px errors
+    nrm = l[:2] / np.linalg.norm(l[:2])
+    e = g.endpoint_errors(K, g.plucker_from_endpoints(P1, P2), (uv + 3 * nrm).ravel())
+    np.testing.assert_allclose(e, [3, 3], atol=1e-9)
+
+
+def test_endpoint_error_jacobian(rng):
+    Lc = g.plucker_from_endpoints(np.array([-1.0, 0.3, 4.0]), np.array([1.0, -0.2, 5.0]))
+    obs = np.array([100.0, 200.0, 400.0, 260.0])
+    _, J = g.endpoint_errors(K, Lc, obs, jacobian=True)
+    assert_jac(J, num_jac(lambda L_: g.endpoint_errors(K, L_, obs), Lc))
+
+
+def test_orthonormal_roundtrip_and_jacobian(rng):
+    L = g.normalize_plucker(g.plucker_from_endpoints(rng.normal(size=3), rng.normal(size=3)))
+    U, phi = g.ortho_from_plucker(L)
+    np.testing.assert_allclose(U.T @ U, np.eye(3), atol=1e-12)
+    assert np.linalg.det(U) > 0
+    np.testing.assert_allclose(g.normalize_plucker(g.plucker_from_ortho(U, phi)), L, atol=1e-12)
+    J = g.ortho_jacobian(U, phi)
+
+    def f(delta):
+        U2, p2 = g.ortho_retract(U, phi, delta)
+        return g.plucker_from_ortho(U2, p2)
+
+    assert_jac(J, num_jac(f, np.zeros(4)))
+    # a line through the origin still gets a valid frame
+    U0, phi0 = g.ortho_from_plucker(np.array([0, 0, 0, 0, 0, 1.0]))
+    np.testing.assert_allclose(U0.T @ U0, np.eye(3), atol=1e-12)
+    assert phi0 == pytest.approx(np.pi / 2)
+
+
+def test_anchored_roundtrip_and_jacobians(rng):
+    T_wr = random_pose(rng)
+    ends = g.transform(T_wr, np.array([[-1.0, 0.2, 4.0], [1.0, 0.4, 5.0]]))
+    v = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+    b, r = g.anchor_from_endpoints(ends, T_wr)
+    assert b[2] == pytest.approx(1.0) and r == pytest.approx(1 / 4.5)
+    L = g.anchored_plucker(v, r, b, T_wr)
+    np.testing.assert_allclose(g.line_distance(L, g.plucker_from_endpoints(*ends)), 0, atol=1e-12)
+    _, J_v, J_r, J_xi = g.anchored_plucker(v, r, b, T_wr, jacobians=True)
+    assert_jac(J_v, num_jac(lambda v_: g.anchored_plucker(v_, r, b, T_wr), v))
+    assert_jac(J_r[:, None], num_jac(lambda r_: g.anchored_plucker(v, r_[0], b, T_wr), np.atleast_1d(r)))
+    assert_jac(J_xi, num_jac(lambda T_: g.anchored_plucker(v, r, b, T_), T_wr, g.retract, 6))
+    # minimal axis update: chain with the tangent basis
+    B = g.tangent_basis(v)
+    J_num = num_jac(lambda d: g.anchored_plucker(g.sphere_retract(v, d, B), r, b, T_wr), np.zeros(2))
+    assert_jac(J_v @ B, J_num)
+
+
+def test_full_chain_anchored_error_jacobian(rng):
+    """e(v, r, T_ref, T_obs): the exact chain the backend uses, end to end."""
+    T_wr = random_pose(rng)
+    T_wc = T_wr @ g.make_T(g.so3_exp([0.05, -0.1, 0.02]), [0.5, 0.1, -0.2])
+    ends = g.transform(T_wr, np.array([[-1.0, 0.2, 4.0], [1.0, 0.4, 5.0]]))
+    v = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+    b, r = g.anchor_from_endpoints(ends, T_wr)
+    obs = np.array([100.0, 200.0, 400.0, 260.0])
+
+    def err(v_, r_, Tr, Tc):
+        return g.endpoint_errors(K, g.plucker_to_camera(g.anchored_plucker(v_, r_, b, Tr), Tc), obs)
+
+    L, J_v, J_r, J_xr = g.anchored_plucker(v, r, b, T_wr, jacobians=True)
+    Lc, J_xc, J_L = g.plucker_to_camera(L, T_wc, jacobians=True)
+    _, J_e = g.endpoint_errors(K, Lc, obs, jacobian=True)
+    JeL = J_e @ J_L
+    assert_jac(JeL @ J_xr, num_jac(lambda T_: err(v, r, T_, T_wc), T_wr, g.retract, 6))
+    assert_jac(J_e @ J_xc, num_jac(lambda T_: err(v, r, T_wr, T_), T_wc, g.retract, 6))
+    assert_jac((JeL @ J_r)[:, None], num_jac(lambda r_: err(v, r_[0], T_wr, T_wc), np.atleast_1d(r)))
+
+
+def test_latlon_is_singular_at_the_pole_tangent_is_not():
+    """Why axes are updated in the tangent plane: world +Z (the vertical axis) is the latitude pole."""
+    for phi in (1e-9, 0.3):
+        v, J = g.direction_from_latlon(np.array(phi), np.array(0.7), jacobian=True)
+        assert_jac(J, num_jac(lambda x: g.direction_from_latlon(x[0], x[1]), np.array([phi, 0.7])))
+        phi_b, th_b = g.latlon_from_direction(v)
+        np.testing.assert_allclose(g.direction_from_latlon(phi_b, th_b), v, atol=1e-9)
+    _, J_pole = g.direction_from_latlon(np.array(1e-9), np.array(0.7), jacobian=True)
+    sv = np.linalg.svd(J_pole, compute_uv=False)
+    assert sv[1] < 1e-8  # one direction of motion is lost: the normal equations become singular
+    B = g.tangent_basis(np.array([0.0, 0.0, 1.0]))
+    np.testing.assert_allclose(np.linalg.svd(B, compute_uv=False), [1, 1], atol=1e-12)
+
+
+def test_sphere_retract_stays_unit_and_moves_by_angle(rng):
+    v = np.array([0.0, 0.0, 1.0])
+    out = g.sphere_retract(v, np.array([0.2, 0.0]))
+    assert np.linalg.norm(out) == pytest.approx(1.0)
+    assert np.degrees(np.arccos(out @ v)) == pytest.approx(np.degrees(0.2))
+
+
+def test_clip_to_observations_recovers_observed_extent(rng):
+    P1, P2 = np.array([-1.0, 0.5, 5.0]), np.array([1.5, 0.3, 6.0])
+    T = np.stack([np.eye(4), g.make_T(np.eye(3), [0.6, 0.0, 0.0])])
+    uv, _ = g.project_points(K, np.repeat(T[:, None], 2, 1), np.stack([P1, P2])[None].repeat(2, 0))
+    L = g.plucker_from_endpoints(P1, P2)
+    ends, ok = g.clip_to_observations(L[None], np.zeros(2, int), T, K, uv.reshape(2, 4), 1)
+    assert ok.all()
+    np.testing.assert_allclose(ends[0], np.stack([P1, P2]), atol=1e-9)
+    # a line seen end-on (parallel to the rays) cannot be clipped
+    Lp = g.plucker_from_point_dir(np.zeros(3), np.array([0, 0, 1.0]))
+    obs = np.array([[320.0, 240, 320, 240]])
+    _, ok = g.clip_to_observations(Lp[None], np.zeros(1, int), np.eye(4)[None], K, obs, 1)
+    assert not ok.any()
+
+
+def _scene_lines(rng, n):
+    P1 = rng.uniform([-3, -3, 4], [3, 3, 8], (n, 3))
+    P2 = P1 + rng.normal(size=(n, 3))
+    return P1, P2
+
+
+def test_triangulate_lines_two_and_multi_view(rng):
+    n = 30
+    P1, P2 = _scene_lines(rng, n)
+    L_true = g.plucker_from_endpoints(P1, P2)
+    T = np.stack([g.make_T(g.so3_exp(rng.normal(size=3) * 0.05), [0.4 * i, 0.1 * i, 0]) for i in range(4)])
+    idx = np.repeat(np.arange(n), len(T))
+    Tk = np.tile(T, (n, 1, 1))
+    X = np.stack([P1[idx], P2[idx]], 1)
+    uv, _ = g.project_points(K, Tk[:, None], X)
+    obs = uv.reshape(-1, 4)
+    L, ok = g.triangulate_lines(idx, Tk, K, obs, n)
+    assert ok.all()
+    assert g.line_distance(L, L_true).max() < 1e-8
+    planes = g.observation_planes(Tk, K, obs)
+    L2, sin = g.triangulate_line_two_view(planes[0::4], planes[3::4])
+    assert g.line_distance(L2, L_true).max() < 1e-8 and (sin > 0).all()
+    # with 0.5 px noise on the endpoints the lines stay close
+    noisy = obs + rng.normal(scale=0.5, size=obs.shape)
+    Ln, ok = g.triangulate_lines(idx, Tk, K, noisy, n)
+    assert np.median(g.line_angle_deg(Ln[ok], L_true[ok])) < 2.0
+    # a single view, or a line lying along the baseline, is rejected
+    _, ok1 = g.triangulate_lines(np.zeros(1, int), T[:1], K, obs[:1], 1)
+    assert not ok1.any()
+    Pb1, Pb2 = np.array([-2.0, 0.0, 5.0]), np.array([2.0, 0.0, 5.0])  # along the baseline (x axis)
+    T_along = np.stack([np.eye(4), g.make_T(np.eye(3), [0.5, 0, 0])])
+    uvb, _ = g.project_points(K, T_along[:, None], np.stack([Pb1, Pb2])[None].repeat(2, 0))
+    _, okb = g.triangulate_lines(np.zeros(2, int), T_along, K, uvb.reshape(2, 4), 1)
+    assert not okb.any()
+
+
+def test_triangulate_points(rng):
+    n = 40
+    X = rng.uniform([-3, -3, 4], [3, 3, 8], (n, 3))
+    T = np.stack([g.make_T(np.eye(3), [0.3 * i, 0, 0]) for i in range(3)])
+    idx = np.repeat(np.arange(n), 3)
+    Tk = np.tile(T, (n, 1, 1))
+    uv, _ = g.project_points(K, Tk, X[idx])
+    Xh, ok = g.triangulate_points(idx, Tk, K, uv, n)
+    assert ok.all() and np.abs(Xh - X).max() < 1e-9
+    # one observation only, and no parallax, are rejected
+    Xh, ok = g.triangulate_points(np.zeros(2, int), np.stack([np.eye(4)] * 2), K, uv[:2] * 0 + 300, 1)
+    assert not ok.any()
