@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from papl_mapper.geometry.triangulation import observation_planes
 from papl_mapper.map import Camera
 from papl_mapper.mapping.lines import (
     LineInitConfig,
     endpoint_extent,
     line_through_planes,
-    observation_planes_w,
     reprojection_rms,
     triangulate_lines,
 )
@@ -59,7 +59,7 @@ def _endpoint_error(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
 
 def test_planes_contain_the_segment():
     segs, track, T, xy, _ = _scene()
-    planes = observation_planes_w(T, xy, CAM.K)
+    planes = observation_planes(T, CAM.K, xy)
     X = segs[track]  # (n, 2, 3)
     res = np.einsum("ni,nki->nk", planes[:, :3], X) + planes[:, 3:4]
     assert np.abs(res).max() < EXACT_TOL
@@ -113,7 +113,7 @@ def test_degenerate_tracks_are_dropped():
 def test_helpers_agree():
     segs, track, T, xy, _ = _scene()
     sel = track == 5
-    p, d = line_through_planes(observation_planes_w(T[sel], xy[sel], CAM.K), T[sel, :3, 3])
+    p, d = line_through_planes(observation_planes(T[sel], CAM.K, xy[sel]), T[sel, :3, 3])
     assert reprojection_rms(p, d, T[sel], xy[sel], CAM.K).max() < 1e-6
     ends = endpoint_extent(p, d, T[sel], xy[sel], CAM.K, 5.0)
     assert _endpoint_error(ends[None], segs[5:6])[0] < EXACT_TOL

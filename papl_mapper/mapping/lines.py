@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from papl_mapper.geometry.triangulation import observation_planes
+
 log = logging.getLogger(__name__)
 
 
@@ -40,17 +42,6 @@ class LineEstimates:
     endpoints_w: np.ndarray  # (M, 2, 3)
     from_vp: np.ndarray  # (M,) bool, direction fixed by the vanishing direction
     rms_px: np.ndarray  # (M,) endpoint-to-line reprojection RMS
-
-
-def observation_planes_w(T_wc: np.ndarray, xy: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Back-projection planes (n,4) [normal_w, offset] of segments xy (n,4) seen from poses (n,4,4)."""
-    h1 = np.column_stack([xy[:, :2], np.ones(len(xy))])
-    h2 = np.column_stack([xy[:, 2:], np.ones(len(xy))])
-    n_c = np.cross(h1, h2) @ K  # K^T l as rows: (n, 3)
-    n_w = np.einsum("nij,nj->ni", T_wc[:, :3, :3], n_c)
-    n_w /= np.linalg.norm(n_w, axis=1, keepdims=True)
-    offset = -np.einsum("ni,ni->n", n_w, T_wc[:, :3, 3])
-    return np.column_stack([n_w, offset])
 
 
 def line_through_planes(
@@ -160,7 +151,7 @@ def triangulate_lines(
     track, T_wc, xy, vp_dir_w = track[order], T_wc[order], xy[order], vp_dir_w[order]
     starts = np.flatnonzero(np.r_[True, track[1:] != track[:-1]]) if len(track) else np.zeros(0, int)
     ends = np.r_[starts[1:], len(track)]
-    planes = observation_planes_w(T_wc, xy, K) if len(track) else np.zeros((0, 4))
+    planes = observation_planes(T_wc, K, xy) if len(track) else np.zeros((0, 4))
     out_t, out_e, out_vp, out_rms = [], [], [], []
     reasons: dict[str, int] = {}
     for s, e in zip(starts, ends, strict=True):
