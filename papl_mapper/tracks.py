@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +39,12 @@ class Tracks:
     line_vp: np.ndarray  # (Kl,) int64, index into vp_dirs_c[frame] or -1
     vp_dirs_c: np.ndarray  # (F, V, 3) float64, NaN where absent
     vertical_vp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (F,) or empty
+    # keyframe descriptors for re-association and revisits: ORB of point rows, LBD of line rows
+    point_desc_row: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (Dp,) row
+    point_desc: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))  # (Dp, 32) ORB
+    line_desc_row: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (Dl,) row
+    line_desc: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))  # (Dl, 32) LBD
+    skipped_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # textureless
 
     def __len__(self) -> int:
         return len(self.frame_index)
@@ -84,10 +90,10 @@ class Tracks:
     def load(cls, path: str | Path) -> Tracks:
         """Read a file written by `save`; ValueError if it is not one."""
         with np.load(path, allow_pickle=False) as z:
-            missing = {f.name for f in fields(cls)} - set(z.files)
+            missing = {f.name for f in fields(cls) if f.default_factory is MISSING} - set(z.files)
             if missing:
                 raise ValueError(f"{path}: not a tracks file (missing {sorted(missing)})")
-            kw = {f.name: z[f.name] for f in fields(cls) if f.name != "camera"}
+            kw = {f.name: z[f.name] for f in fields(cls) if f.name != "camera" and f.name in z.files}
             camera = Camera.from_dict(json.loads(str(z["camera"])))
         tracks = cls(camera=camera, **kw)
         tracks.validate()

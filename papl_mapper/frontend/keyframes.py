@@ -1,0 +1,72 @@
+"""Keyframe selection by parallax (median flow of common point tracks) and track survival.
+
+A frame becomes a keyframe when, relative to the last keyframe, the median displacement of the
+point tracks both see reaches `min_parallax_px`, or the fraction of the last keyframe's tracks
+still alive drops below `min_survival`; never closer than `min_gap_frames` to the previous
+keyframe (density cap), and at least every `max_gap_frames` frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class KeyframeConfig:
+    """Settings of keyframe selection."""
+
+    min_parallax_px: float = 20.0
+    """Median displacement of common point tracks (pixels of the processed image) that makes a keyframe."""
+    min_survival: float = 0.6
+    """A keyframe is made when fewer than this fraction of the last keyframe's tracks survive."""
+    min_gap_frames: int = 3
+    """Density cap: at least this many processed frames between keyframes."""
+    max_gap_frames: int = 60
+    """A keyframe at least every this many processed frames (0 = no limit)."""
+    min_common_tracks: int = 12
+    """Below this many common tracks a keyframe is made (tracking is about to break)."""
+
+
+class KeyframeSelector:
+    """Decides per frame whether it is a keyframe; remembers the last keyframe's point tracks."""
+
+    def __init__(self, config: KeyframeConfig):
+        self.config = config
+        self._ids = np.zeros(0, np.int64)
+        self._uv = np.zeros((0, 2))
+        self._last = None  # counter of the last keyframe
+        self._frame = -1
+        self.last_parallax_px = 0.0
+        self.last_survival = 1.0
+
+    def update(self, ids: np.ndarray, uv: np.ndarray, force: bool = False) -> bool:
+        """Feed one frame's point tracks (ids (N,), pixels (N, 2)); True if it is a keyframe."""
+        self._frame += 1
+        cfg = self.config
+        ids = np.asarray(ids, np.int64)
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        is_kf = force or self._last is None
+        if not is_kf:
+            gap = self._frame - self._last
+            common, ia, ib = np.intersect1d(self._ids, ids, assume_unique=True, return_indices=True)
+            self.last_survival = len(common) / max(1, len(self._ids))
+            self.last_parallax_px = (
+                float(np.median(np.linalg.norm(uv[ib] - self._uv[ia], axis=1))) if len(common) else 0.0
+            )
+            if gap >= cfg.min_gap_frames:
+                is_kf = (
+                    self.last_parallax_px >= cfg.min_parallax_px
+                    or self.last_survival < cfg.min_survival
+                    or len(common) < cfg.min_common_tracks
+                    or (cfg.max_gap_frames > 0 and gap >= cfg.max_gap_frames)
+                )
+        if is_kf:
+            self._ids, self._uv, self._last = ids.copy(), uv.copy(), self._frame
+        return is_kf
+
+    def set_reference(self, ids: np.ndarray, uv: np.ndarray) -> None:
+        """Replace the last keyframe's tracks (after re-association renamed some of them)."""
+        self._ids = np.asarray(ids, np.int64).copy()
+        self._uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()

@@ -1,0 +1,460 @@
+"""Line segments: detection (EDLines or LSD), fusion of collinear fragments, LBD, and tracking.
+
+Segments are (S, 4) float arrays `x1 y1 x2 y2` in (distorted) pixels, oriented by polarity:
+the brighter side is on the left of the direction p1 -> p2 (image y points down, so "left" is
+the normal (dy, -dx)). Polarity makes tracking and LBD tell apart the two edges of a thin bar.
+
+Tracking predicts each live segment in the next frame with the flow of the nearest tracked
+points (inverse-distance weighted), then matches it to the new detections by angle, distance to
+the predicted line and overlap, one to one in order of cost. LBD descriptors are computed on
+keyframes for keyframe-to-keyframe matching and for re-finding recently lost segment tracks.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LineConfig:
+    """Settings of segment detection, fusion, tracking and LBD matching."""
+
+    detector: Literal["edlines", "lsd"] = "edlines"
+    """EDLines (cv2.ximgproc EdgeDrawing, fast) or LSD (cv2.createLineSegmentDetector)."""
+    min_length_px: float = 25.0
+    """Shortest segment kept (after fusion), in pixels of the processed image."""
+    max_segments: int = 250
+    """Keep at most this many segments per frame, the longest."""
+    ed_gradient_threshold: int = 20
+    """EdgeDrawing gradient threshold (lower finds weaker edges)."""
+    ed_sigma: float = 1.0
+    """EdgeDrawing Gaussian smoothing."""
+    ed_line_fit_error_px: float = 1.0
+    """EdgeDrawing largest line-fit error."""
+    fuse: bool = True
+    """Merge collinear fragments into one segment."""
+    fuse_angle_deg: float = 2.0
+    """Largest angle between fragments that are merged."""
+    fuse_distance_px: float = 1.5
+    """Largest distance of a fragment's endpoints to the other fragment's line."""
+    fuse_gap_px: float = 10.0
+    """Largest gap along the line between merged fragments."""
+    match_angle_deg: float = 5.0
+    """Tracking gate: angle between the predicted and the detected segment."""
+    match_distance_px: float = 4.0
+    """Tracking gate: mean distance of the detected endpoints to the predicted line."""
+    min_overlap: float = 0.3
+    """Tracking gate: overlap along the line over the shorter segment's length."""
+    flow_neighbours: int = 6
+    """Tracked points used to predict a segment's motion."""
+    lbd_max_hamming: int = 70
+    """Largest Hamming distance (of 256 bits) of an LBD match."""
+    lbd_ratio: float = 0.85
+    """Lowe ratio of the best to the second-best LBD distance."""
+    reassociate: bool = True
+    """Give new segment tracks the id of a recently lost track with a matching LBD descriptor."""
+    reassociate_radius_px: float = 30.0
+    """A lost segment is re-found only if its midpoint is this close to where it was last seen."""
+    lost_memory_frames: int = 60
+    """How long (frames) a lost segment track can be re-found."""
+
+
+class SegmentDetector:
+    """EDLines or LSD on gray images, followed by length filtering, fusion and polarity orientation."""
+
+    def __init__(self, config: LineConfig):
+        self.config = config
+        if config.detector == "edlines":
+            self._ed = cv2.ximgproc.createEdgeDrawing()
+            params = cv2.ximgproc.EdgeDrawing.Params()
+            params.GradientThresholdValue = int(config.ed_gradient_threshold)
+            params.Sigma = float(config.ed_sigma)
+            params.LineFitErrorThreshold = float(config.ed_line_fit_error_px)
+            params.MinLineLength = max(5, int(config.min_length_px // 2))
+            self._ed.setParams(params)
+        else:
+            self._lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
+
+    def raw(self, gray: np.ndarray) -> np.ndarray:
+        """Segments of the detector as is, (S, 4) float64."""
+        if self.config.detector == "edlines":
+            self._ed.detectEdges(gray)
+            lines = self._ed.detectLines()
+        else:
+            lines = self._lsd.detect(gray)[0]
+        if lines is None:
+            return np.zeros((0, 4))
+        return np.asarray(lines, np.float64).reshape(-1, 4)
+
+    def detect(self, gray: np.ndarray) -> np.ndarray:
+        """Fused, oriented segments longer than min_length_px, longest first, (S, 4) float64."""
+        cfg = self.config
+        segs = self.raw(gray)
+        if cfg.fuse and len(segs) > 1:
+            segs = fuse_collinear(segs, cfg.fuse_angle_deg, cfg.fuse_distance_px, cfg.fuse_gap_px)
+        length = np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1])
+        keep = length >= cfg.min_length_px
+        segs, length = segs[keep], length[keep]
+        segs = segs[np.argsort(-length, kind="stable")[: cfg.max_segments]]
+        return orient_by_polarity(segs, gray)
+
+
+def fuse_collinear(segs: np.ndarray, angle_deg: float, dist_px: float, gap_px: float) -> np.ndarray:
+    """Merge groups of nearly collinear fragments (angle, line distance and gap gates; transitive)."""
+    segs = np.asarray(segs, np.float64).reshape(-1, 4)
+    n = len(segs)
+    if n < 2:
+        return segs
+    p1, p2 = segs[:, :2], segs[:, 2:]
+    d = p2 - p1
+    length = np.linalg.norm(d, axis=1)
+    u = d / np.maximum(length, 1e-9)[:, None]
+    nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    cos = np.abs(u @ u.T)
+    cand = cos >= np.cos(np.radians(angle_deg))
+    np.fill_diagonal(cand, False)
+    cand = np.triu(cand)
+    ii, jj = np.nonzero(cand)
+    if len(ii) == 0:
+        return segs
+    # distance of j's endpoints to line i and of i's endpoints to line j
+    dj1 = np.abs(np.sum((p1[jj] - p1[ii]) * nrm[ii], axis=1))
+    dj2 = np.abs(np.sum((p2[jj] - p1[ii]) * nrm[ii], axis=1))
+    di1 = np.abs(np.sum((p1[ii] - p1[jj]) * nrm[jj], axis=1))
+    di2 = np.abs(np.sum((p2[ii] - p1[jj]) * nrm[jj], axis=1))
+    close = np.maximum.reduce([dj1, dj2, di1, di2]) <= dist_px
+    # gap between the intervals along i's direction
+    tj1 = np.sum((p1[jj] - p1[ii]) * u[ii], axis=1)
+    tj2 = np.sum((p2[jj] - p1[ii]) * u[ii], axis=1)
+    lo, hi = np.minimum(tj1, tj2), np.maximum(tj1, tj2)
+    gap = np.maximum(lo - length[ii], -hi)
+    ok = close & (gap <= gap_px)
+    if not ok.any():
+        return segs
+    parent = np.arange(n)
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for a, b in zip(ii[ok].tolist(), jj[ok].tolist(), strict=True):
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            parent[rb] = ra
+    roots = np.array([find(a) for a in range(n)])
+    out = []
+    for r in np.unique(roots):
+        members = np.flatnonzero(roots == r)
+        if len(members) == 1:
+            out.append(segs[members[0]])
+            continue
+        ref = u[members[np.argmax(length[members])]]
+        sign = np.where(u[members] @ ref < 0, -1.0, 1.0)
+        direction = np.sum(u[members] * (sign * length[members])[:, None], axis=0)
+        direction /= np.linalg.norm(direction)
+        w = length[members] / length[members].sum()
+        centre = np.sum(((p1[members] + p2[members]) / 2) * w[:, None], axis=0)
+        pts = np.vstack([p1[members], p2[members]])
+        t = (pts - centre) @ direction
+        out.append(np.concatenate([centre + t.min() * direction, centre + t.max() * direction]))
+    return np.array(out, np.float64)
+
+
+def orient_by_polarity(segs: np.ndarray, gray: np.ndarray, offset_px: float = 2.0) -> np.ndarray:
+    """Swap endpoints so that the brighter side lies on the left normal (dy, -dx) of p1 -> p2."""
+    segs = np.asarray(segs, np.float64).reshape(-1, 4).copy()
+    if len(segs) == 0:
+        return segs
+    h, w = gray.shape[:2]
+    t = np.linspace(0.2, 0.8, 5)
+    p1, p2 = segs[:, None, :2], segs[:, None, 2:]
+    pts = p1 + (p2 - p1) * t[None, :, None]  # (S, 5, 2)
+    d = segs[:, 2:] - segs[:, :2]
+    n = np.stack([d[:, 1], -d[:, 0]], axis=1) / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+    left = pts + offset_px * n[:, None, :]
+    right = pts - offset_px * n[:, None, :]
+
+    def sample(q: np.ndarray) -> np.ndarray:
+        x = np.clip(np.rint(q[..., 0]).astype(np.intp), 0, w - 1)
+        y = np.clip(np.rint(q[..., 1]).astype(np.intp), 0, h - 1)
+        return gray[y, x].astype(np.float64)
+
+    contrast = (sample(left) - sample(right)).sum(axis=1)
+    flip = contrast < 0
+    segs[flip] = segs[flip][:, [2, 3, 0, 1]]
+    return segs
+
+
+# -- LBD --------------------------------------------------------------------------------------
+
+
+class LBD:
+    """LBD binary descriptors (cv2.line_descriptor) of given segments, (D, 32) uint8."""
+
+    def __init__(self) -> None:
+        self._bd = cv2.line_descriptor.BinaryDescriptor_createBinaryDescriptor()
+        self._bd.setNumOfOctaves(1)
+
+    def compute(self, gray: np.ndarray, segs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Descriptors of the segments it could describe: rows (D,) into segs and (D, 32) uint8."""
+        segs = np.asarray(segs, np.float64).reshape(-1, 4)
+        if len(segs) == 0:
+            return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
+        kls = []
+        for i, (x1, y1, x2, y2) in enumerate(segs.tolist()):
+            kl = cv2.line_descriptor.KeyLine()
+            kl.startPointX, kl.startPointY, kl.endPointX, kl.endPointY = x1, y1, x2, y2
+            kl.sPointInOctaveX, kl.sPointInOctaveY, kl.ePointInOctaveX, kl.ePointInOctaveY = x1, y1, x2, y2
+            length = float(np.hypot(x2 - x1, y2 - y1))
+            kl.lineLength = length
+            kl.numOfPixels = max(1, int(length))
+            kl.angle = float(np.arctan2(y2 - y1, x2 - x1))
+            kl.class_id = i
+            kl.octave = 0
+            kl.pt = ((x1 + x2) / 2, (y1 + y2) / 2)
+            kl.size = length
+            kl.response = length / max(gray.shape)
+            kls.append(kl)
+        kls, desc = self._bd.compute(gray, kls)
+        if desc is None or not kls:
+            return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
+        return np.array([k.class_id for k in kls], np.int64), np.asarray(desc, np.uint8)
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamming distances (A, B) between rows of two uint8 descriptor arrays."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((len(a), len(b)), np.int64)
+    x = np.unpackbits(np.asarray(a, np.uint8), axis=1).astype(np.float32)
+    y = np.unpackbits(np.asarray(b, np.uint8), axis=1).astype(np.float32)
+    same = x @ y.T + (1 - x) @ (1 - y).T
+    return (x.shape[1] - same).astype(np.int64)
+
+
+def match_descriptors(
+    desc_a: np.ndarray, desc_b: np.ndarray, max_hamming: int, ratio: float, allowed: np.ndarray | None = None
+) -> np.ndarray:
+    """Mutual nearest neighbours passing a distance and a ratio test; (M, 2) rows (ia, ib).
+
+    `allowed` (A, B) bool restricts the candidates (a geometric gate).
+    """
+    ham = hamming(desc_a, desc_b).astype(np.float64)
+    if ham.size == 0:
+        return np.zeros((0, 2), np.int64)
+    if allowed is not None:
+        ham = np.where(allowed, ham, np.inf)
+    best_b = np.argmin(ham, axis=1)
+    best_a = np.argmin(ham, axis=0)
+    part = np.sort(ham, axis=1)
+    second = part[:, 1] if ham.shape[1] > 1 else np.full(len(ham), np.inf)
+    ia = np.arange(len(ham))
+    d = ham[ia, best_b]
+    ok = (d <= max_hamming) & (best_a[best_b] == ia) & (d <= ratio * second)
+    return np.stack([ia[ok], best_b[ok]], axis=1).astype(np.int64)
+
+
+def match_keyframe_lines(
+    segs_a: np.ndarray,
+    desc_a: np.ndarray,
+    segs_b: np.ndarray,
+    desc_b: np.ndarray,
+    config: LineConfig,
+    max_angle_deg: float = 30.0,
+) -> np.ndarray:
+    """Match segments of two keyframes by LBD (mutual, ratio) with a loose polarity-aware angle gate.
+
+    Returns (M, 2) row pairs into (segs_a, segs_b).
+    """
+    da = segs_a[:, 2:] - segs_a[:, :2]
+    db = segs_b[:, 2:] - segs_b[:, :2]
+    ua = da / np.maximum(np.linalg.norm(da, axis=1), 1e-9)[:, None]
+    ub = db / np.maximum(np.linalg.norm(db, axis=1), 1e-9)[:, None]
+    allowed = ua @ ub.T >= np.cos(np.radians(max_angle_deg))
+    return match_descriptors(desc_a, desc_b, config.lbd_max_hamming, config.lbd_ratio, allowed)
+
+
+# -- tracking ---------------------------------------------------------------------------------
+
+
+def predict_segments(segs: np.ndarray, flow_from: np.ndarray, flow_to: np.ndarray, k: int) -> np.ndarray:
+    """Move segments (S, 4) by the inverse-distance-weighted flow of the k nearest tracked points.
+
+    With fewer than 2 tracked points the segments stay where they are (zero-motion prediction).
+    """
+    segs = np.asarray(segs, np.float64).reshape(-1, 4)
+    if len(segs) == 0 or len(flow_from) < 2:
+        return segs.copy()
+    k = min(k, len(flow_from))
+    tree = cKDTree(flow_from)
+    q = np.vstack([segs[:, :2], segs[:, 2:], (segs[:, :2] + segs[:, 2:]) / 2])  # (3S, 2)
+    dist, idx = tree.query(q, k=k)
+    dist = dist.reshape(len(q), k)
+    idx = idx.reshape(len(q), k)
+    w = 1.0 / (dist + 5.0)
+    flow = flow_to - flow_from
+    f = np.sum(flow[idx] * w[..., None], axis=1) / w.sum(axis=1)[:, None]
+    s = len(segs)
+    # endpoints move with their own flow, plus the midpoint's as a regulariser
+    f1 = 0.5 * f[:s] + 0.5 * f[2 * s :]
+    f2 = 0.5 * f[s : 2 * s] + 0.5 * f[2 * s :]
+    return np.hstack([segs[:, :2] + f1, segs[:, 2:] + f2])
+
+
+def match_predicted(pred: np.ndarray, det: np.ndarray, config: LineConfig) -> np.ndarray:
+    """One-to-one matches (M, 2) of predicted segments to detections by the tracking gates."""
+    if len(pred) == 0 or len(det) == 0:
+        return np.zeros((0, 2), np.int64)
+    dp = pred[:, 2:] - pred[:, :2]
+    lp = np.maximum(np.linalg.norm(dp, axis=1), 1e-9)
+    up = dp / lp[:, None]
+    np_ = np.stack([-up[:, 1], up[:, 0]], axis=1)
+    dd = det[:, 2:] - det[:, :2]
+    ld = np.maximum(np.linalg.norm(dd, axis=1), 1e-9)
+    ud = dd / ld[:, None]
+    cos = up @ ud.T  # (P, D), polarity-aware
+    # distance of detected endpoints to the predicted line
+    r1 = det[None, :, :2] - pred[:, None, :2]
+    r2 = det[None, :, 2:] - pred[:, None, :2]
+    e1 = np.abs(np.einsum("pdk,pk->pd", r1, np_))
+    e2 = np.abs(np.einsum("pdk,pk->pd", r2, np_))
+    dist = 0.5 * (e1 + e2)
+    t1 = np.einsum("pdk,pk->pd", r1, up)
+    t2 = np.einsum("pdk,pk->pd", r2, up)
+    lo = np.clip(np.minimum(t1, t2), 0, lp[:, None])
+    hi = np.clip(np.maximum(t1, t2), 0, lp[:, None])
+    overlap = (hi - lo) / np.minimum(lp[:, None], ld[None, :])
+    ok = (
+        (cos >= np.cos(np.radians(config.match_angle_deg)))
+        & (dist <= config.match_distance_px)
+        & (overlap >= config.min_overlap)
+    )
+    if not ok.any():
+        return np.zeros((0, 2), np.int64)
+    angle = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    cost = dist + 0.5 * angle + 2.0 * (1.0 - np.minimum(overlap, 1.0))
+    pi, di = np.nonzero(ok)
+    order = np.argsort(cost[pi, di], kind="stable")
+    used_p, used_d, out = set(), set(), []
+    for a, b in zip(pi[order].tolist(), di[order].tolist(), strict=True):
+        if a in used_p or b in used_d:
+            continue
+        used_p.add(a)
+        used_d.add(b)
+        out.append((a, b))
+    return np.array(out, np.int64).reshape(-1, 2)
+
+
+class LineTracker:
+    """Stateful segment tracker of one recording: `step` once per frame, `keyframe` on keyframes."""
+
+    def __init__(self, config: LineConfig):
+        self.config = config
+        self.ids = np.zeros(0, np.int64)
+        self.segs = np.zeros((0, 4))
+        self.next_id = 0
+        self.frame = -1
+        self.born: dict[int, int] = {}
+        self.aliases: dict[int, int] = {}
+        self._kf: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # live id -> (segment, LBD) at last keyframe
+        self._lost_ids = np.zeros(0, np.int64)
+        self._lost_segs = np.zeros((0, 4))
+        self._lost_desc = np.zeros((0, 32), np.uint8)
+        self._lost_at = np.zeros(0, np.int64)
+
+    def step(self, det: np.ndarray, flow_from: np.ndarray | None, flow_to: np.ndarray | None) -> np.ndarray:
+        """Assign track ids to this frame's detections (S, 4); returns the ids (S,) int64.
+
+        flow_from/flow_to: (N, 2) positions of point tracks in the previous and this frame;
+        None after a break in tracking (all segment tracks end).
+        """
+        self.frame += 1
+        det = np.asarray(det, np.float64).reshape(-1, 4)
+        ids = np.full(len(det), -1, np.int64)
+        if flow_from is not None and len(self.ids):
+            pred = predict_segments(self.segs, flow_from, flow_to, self.config.flow_neighbours)
+            m = match_predicted(pred, det, self.config)
+            ids[m[:, 1]] = self.ids[m[:, 0]]
+            lost = np.setdiff1d(self.ids, ids[ids >= 0])
+        else:
+            lost = self.ids
+        self._forget(lost)
+        new = ids < 0
+        ids[new] = np.arange(self.next_id, self.next_id + new.sum())
+        for i in ids[new].tolist():
+            self.born[i] = self.frame
+        self.next_id += int(new.sum())
+        self.ids, self.segs = ids, det
+        return ids.copy()
+
+    def _forget(self, lost: np.ndarray) -> None:
+        for i in lost.tolist():
+            self.born.pop(i, None)
+        if not self.config.reassociate:
+            return
+        keep = [i for i in lost.tolist() if i in self._kf]
+        if not keep:
+            return
+        self._lost_ids = np.concatenate([self._lost_ids, np.array(keep, np.int64)])
+        self._lost_segs = np.vstack([self._lost_segs, np.array([self._kf[i][0] for i in keep])])
+        self._lost_desc = np.vstack([self._lost_desc, np.array([self._kf.pop(i)[1] for i in keep])])
+        self._lost_at = np.concatenate([self._lost_at, np.full(len(keep), self.frame)])
+
+    def keyframe(self, gray: np.ndarray, lbd: LBD) -> tuple[np.ndarray, np.ndarray]:
+        """LBD of the live segments; re-associates young tracks with lost ones. Returns ids, (D, 32)."""
+        rows, desc = lbd.compute(gray, self.segs)
+        if self.config.reassociate and len(rows):
+            self._reassociate(rows, desc)
+        ids = self.ids[rows]
+        self._kf = {i: (self.segs[r], d) for i, r, d in zip(ids.tolist(), rows.tolist(), desc, strict=True)}
+        self.born.clear()
+        keep = self.frame - self._lost_at <= self.config.lost_memory_frames
+        self._lost_ids, self._lost_segs = self._lost_ids[keep], self._lost_segs[keep]
+        self._lost_desc, self._lost_at = self._lost_desc[keep], self._lost_at[keep]
+        return ids, desc
+
+    def _reassociate(self, rows: np.ndarray, desc: np.ndarray) -> None:
+        cfg = self.config
+        young = np.array([int(self.ids[r]) in self.born for r in rows], bool)
+        if not young.any() or len(self._lost_ids) == 0:
+            return
+        yr = np.flatnonzero(young)
+        segs_y = self.segs[rows[yr]]
+        mid_y = (segs_y[:, :2] + segs_y[:, 2:]) / 2
+        mid_l = (self._lost_segs[:, :2] + self._lost_segs[:, 2:]) / 2
+        born = np.array([self.born[int(self.ids[rows[y]])] for y in yr])
+        near = np.linalg.norm(mid_y[:, None] - mid_l[None], axis=2) <= cfg.reassociate_radius_px
+        dy = segs_y[:, 2:] - segs_y[:, :2]
+        dl = self._lost_segs[:, 2:] - self._lost_segs[:, :2]
+        cos = (dy @ dl.T) / np.maximum(np.outer(np.linalg.norm(dy, axis=1), np.linalg.norm(dl, axis=1)), 1e-9)
+        allowed = near & (cos >= np.cos(np.radians(10.0))) & (born[:, None] >= self._lost_at[None, :])
+        m = match_descriptors(desc[yr], self._lost_desc, cfg.lbd_max_hamming, cfg.lbd_ratio, allowed)
+        if len(m) == 0:
+            return
+        for y, l in m.tolist():
+            row = rows[yr[y]]
+            self.aliases[int(self.ids[row])] = int(self._lost_ids[l])
+            self.ids[row] = self._lost_ids[l]
+        keep = np.ones(len(self._lost_ids), bool)
+        keep[m[:, 1]] = False
+        self._lost_ids, self._lost_segs = self._lost_ids[keep], self._lost_segs[keep]
+        self._lost_desc, self._lost_at = self._lost_desc[keep], self._lost_at[keep]
+        log.debug("re-associated %d segment tracks", len(m))
+
+    def resolve(self, ids: np.ndarray) -> np.ndarray:
+        """Map track ids through the re-association aliases to their oldest id."""
+        out = ids.copy()
+        for young, old in self.aliases.items():
+            while old in self.aliases:
+                old = self.aliases[old]
+            out[ids == young] = old
+        return out
