@@ -1,0 +1,126 @@
+"""Hand-held walkthrough camera paths along a scene's route: forward motion, turns, jitter, return.
+
+The route (a closed loop of waypoints in free space) is smoothed locally at its corners. A run
+long enough for most of a loop walks whole loops and ends at the start; a shorter one walks out
+along the route, turns round and walks back. Heading follows the path, with slow look-around,
+small pitch/roll jitter and a walking bob. Poses are T_wc (camera -> world), OpenCV camera frame.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from papl_mapper.synth.scenes import Scene
+
+CORNER_CUT_M = 0.8  # corners are rounded within this distance of a waypoint
+HEADING_SMOOTH_M = 0.6  # heading looks along the path over +- this distance
+LOOP_FRACTION = 0.75  # walk whole loops when the distance is at least this part of one
+
+
+def _smooth_loop(waypoints: np.ndarray, cut: float = CORNER_CUT_M, iterations: int = 5) -> np.ndarray:
+    """Closed polyline with each corner rounded within `cut` of it (Chaikin on densified corners)."""
+    pts = []
+    n = len(waypoints)
+    for i in range(n):
+        p, prev, nxt = waypoints[i], waypoints[i - 1], waypoints[(i + 1) % n]
+        d_in, d_out = p - prev, nxt - p
+        c_in = min(cut, 0.45 * np.linalg.norm(d_in))
+        c_out = min(cut, 0.45 * np.linalg.norm(d_out))
+        pts += [p - d_in / np.linalg.norm(d_in) * c_in, p, p + d_out / np.linalg.norm(d_out) * c_out]
+    poly = np.array(pts)
+    for _ in range(iterations):
+        nxt = np.roll(poly, -1, axis=0)
+        poly = np.stack([0.75 * poly + 0.25 * nxt, 0.25 * poly + 0.75 * nxt], axis=1).reshape(-1, 2)
+    # start the loop where the route starts (its first waypoint is mid-edge on a straight)
+    start = int(np.argmin(np.linalg.norm(poly - waypoints[0], axis=1)))
+    return np.roll(poly, -start, axis=0)
+
+
+class _Loop:
+    """Arc-length parametrised closed polyline."""
+
+    def __init__(self, poly: np.ndarray):
+        closed = np.vstack([poly, poly[:1]])
+        seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
+        self.s = np.concatenate([[0.0], np.cumsum(seg)])
+        self.pts = closed
+        self.length = float(self.s[-1])
+
+    def at(self, s: np.ndarray) -> np.ndarray:
+        s = np.mod(s, self.length)
+        return np.stack([np.interp(s, self.s, self.pts[:, k]) for k in (0, 1)], axis=-1)
+
+    def heading(self, s: np.ndarray, window: float = HEADING_SMOOTH_M) -> np.ndarray:
+        d = self.at(s + window) - self.at(s - window)
+        return np.arctan2(d[:, 1], d[:, 0])
+
+
+def _smooth_noise(
+    rng: np.random.Generator, t: np.ndarray, f_lo: float, f_hi: float, k: int = 4
+) -> np.ndarray:
+    """Sum of k seeded sinusoids with frequencies in [f_lo, f_hi] Hz, unit RMS."""
+    f = rng.uniform(f_lo, f_hi, k)
+    ph = rng.uniform(0, 2 * math.pi, k)
+    return np.sin(2 * math.pi * f[None] * t[:, None] + ph[None]).sum(1) * math.sqrt(2.0 / k)
+
+
+def walkthrough(
+    scene: Scene, n_frames: int, fps: float, seed: int = 0, speed: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (N,) in seconds and poses T_wc (N, 4, 4) of a hand-held walk through `scene`."""
+    rng = np.random.default_rng([seed, 7])
+    t = np.arange(n_frames) / fps
+    T = n_frames / fps
+    loop = _Loop(_smooth_loop(scene.route))
+    dist = speed * T
+    if dist >= LOOP_FRACTION * loop.length:
+        laps = max(1, round(dist / loop.length))
+        s = t / T * laps * loop.length
+        yaw = loop.heading(s)
+    else:
+        # out and back: constant speed, reversing smoothly over 2 tau around the middle
+        tau = min(1.0, T / 6)
+        v = speed * np.clip((T / 2 - t) / tau, -1.0, 1.0)
+        s = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / fps)])
+        turn = np.clip((t - (T / 2 - tau)) / (2 * tau), 0.0, 1.0)
+        turn = turn * turn * (3 - 2 * turn)  # smoothstep
+        yaw = loop.heading(s) + math.pi * turn
+    xy = loop.at(s)
+    lateral = np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
+    xy = xy + lateral * (0.05 * _smooth_noise(rng, t, 0.1, 0.4))[:, None]
+    z = (
+        scene.eye_height
+        + 0.015 * np.sin(2 * math.pi * 1.8 * t + rng.uniform(0, 6.3))
+        + 0.02 * _smooth_noise(rng, t, 0.05, 0.2)
+    )
+    yaw = yaw + math.radians(6.0) * _smooth_noise(rng, t, 0.05, 0.25)
+    pitch = math.radians(-4.0) + math.radians(1.5) * _smooth_noise(rng, t, 0.2, 1.2)
+    roll = math.radians(1.5) * _smooth_noise(rng, t, 0.2, 1.2)
+    T_wc = np.repeat(np.eye(4)[None], n_frames, axis=0)
+    T_wc[:, :3, :3] = rotation_wc(yaw, pitch, roll)
+    T_wc[:, :3, 3] = np.column_stack([xy, z])
+    return t, T_wc
+
+
+def rotation_wc(yaw: np.ndarray, pitch: np.ndarray | float, roll: np.ndarray | float) -> np.ndarray:
+    """(N, 3, 3) camera -> world rotations: looking along `yaw` in the XY plane, pitched up, rolled."""
+    yaw = np.atleast_1d(np.asarray(yaw, float))
+    pitch = np.broadcast_to(pitch, yaw.shape)
+    roll = np.broadcast_to(roll, yaw.shape)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    zero = np.zeros_like(yaw)
+    right = np.stack([sy, -cy, zero], -1)
+    down = np.stack([zero, zero, zero - 1], -1)
+    fwd = np.stack([cy, sy, zero], -1)
+    R0 = np.stack([right, down, fwd], axis=-1)  # columns: camera x, y, z in the world
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    Rx = np.zeros(yaw.shape + (3, 3))
+    Rx[:, 0, 0] = 1
+    Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = cp, -sp, sp, cp  # positive pitch looks up
+    cr, sr = np.cos(roll), np.sin(roll)
+    Rz = np.zeros(yaw.shape + (3, 3))
+    Rz[:, 2, 2] = 1
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = cr, -sr, sr, cr
+    return R0 @ Rx @ Rz
