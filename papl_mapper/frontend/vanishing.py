@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -73,6 +74,13 @@ class VPConfig:
     """The tracker takes a frame's refined vertical only if within this of the predicted vertical."""
     track_gain: float = 0.3
     """Blend weight of a frame's refined vertical in the tracked vertical."""
+    score: Literal["support", "grid"] = "support"
+    """How the horizontal proposals about the vertical are scored: "grid" is Lu et al.'s sphere grid
+    (cells at 1 degree miss sharp peaks near the image centre); "support" sums, over segments not
+    explained by the vertical, length x (1 - (angle / support_angle_deg)^2)_+ (Lu et al.'s line support
+    measured directly), the second Atlanta horizontal on the segments the first one leaves."""
+    support_angle_deg: float = 3.0
+    """Angle scale of the "support" score (image angle between a segment and the VP direction)."""
     seed: int = 0
     """Seed of the random segment pairs of the 2-line search."""
 
@@ -299,28 +307,61 @@ def _pick_vertical(dirs: np.ndarray, config: VPConfig) -> int:
     return j if ang[j] <= config.vertical_max_tilt_deg else -1
 
 
+def _support(s: _Segments, K: np.ndarray, dirs: np.ndarray, mask: np.ndarray, config: VPConfig) -> np.ndarray:
+    """(S, T) line support of each segment for each direction: length x (1 - (angle / tol)^2)_+ ."""
+    ang = segment_vp_angles_deg(s.seg[mask], K, dirs)  # (S', T)
+    w = np.clip(1.0 - (ang / config.support_angle_deg) ** 2, 0.0, None)
+    return w * s.length[mask, None]
+
+
 def _horizontal_proposals(
-    dv: np.ndarray, grid: _SphereGrid, config: VPConfig
+    s: _Segments, K: np.ndarray, dv: np.ndarray, grid: _SphereGrid, config: VPConfig
 ) -> tuple[list[np.ndarray], list[float]]:
-    """Best horizontal directions about the vertical dv: two peaks (Atlanta) or an orthogonal pair."""
+    """Best horizontal directions about the vertical dv: two peaks (Atlanta) or an orthogonal pair.
+
+    Proposals rotate a horizontal about dv at proposal_step_deg (the paper's 360). With
+    config.score == "grid" each is scored by Lu et al.'s sphere grid; with "support" by the
+    length-weighted support of the segments not explained by the vertical, the second Atlanta
+    horizontal scored on the segments the first one leaves unexplained.
+    """
     base = _perpendicular(dv)
     other = np.cross(dv, base)
-    theta = np.radians(np.arange(0.0, 360.0, config.proposal_step_deg))  # the paper's 360 proposals
+    theta = np.radians(np.arange(0.0, 360.0, config.proposal_step_deg))
     dh = np.cos(theta)[:, None] * base[None] + np.sin(theta)[:, None] * other[None]  # (T, 3)
-    s = grid.score(dh)
+    dh2 = np.cross(dv[None], dh)  # (T, 3) the Manhattan partner of each proposal
+    if config.score == "grid":
+        s1 = grid.score(dh)
+        if config.manhattan_only:
+            i = int(np.argmax(s1 + grid.score(dh2)))
+            return [dh[i], dh2[i]], [float(s1[i]), float(grid.score(dh2[i][None])[0])]
+        i = int(np.argmax(s1))
+        sep = _line_angle_deg(dh, dh[i][None])
+        peak = (s1 >= np.roll(s1, 1)) & (s1 >= np.roll(s1, -1)) & (s1 > 0)
+        peak &= sep >= config.min_horizontal_separation_deg
+        if not peak.any():
+            return [dh[i]], [float(s1[i])]
+        j = int(np.flatnonzero(peak)[np.argmax(s1[peak])])
+        return [dh[i], dh[j]], [float(s1[i]), float(s1[j])]
+    # line support, segments of the vertical excluded
+    vert = segment_vp_angles_deg(s.seg, K, dv[None])[:, 0] < config.support_angle_deg
+    mask = s.valid & ~vert
+    if not mask.any():
+        return [], []
+    sup = _support(s, K, dh, mask, config)  # (S', T)
     if config.manhattan_only:
-        total = s + grid.score(np.cross(dv[None], dh))
+        sup2 = _support(s, K, dh2, mask, config)
+        total = np.maximum(sup, sup2).sum(axis=0)  # a segment supports the pair once
         i = int(np.argmax(total))
-        d2 = np.cross(dv, dh[i])
-        return [dh[i], d2], [float(s[i]), float(grid.score(d2[None])[0])]
-    i = int(np.argmax(s))
-    sep = _line_angle_deg(dh, dh[i][None])
-    left, right = np.roll(s, 1), np.roll(s, -1)
-    peak = (s >= left) & (s >= right) & (sep >= config.min_horizontal_separation_deg) & (s > 0)
-    if not peak.any():
-        return [dh[i]], [float(s[i])]
-    j = int(np.flatnonzero(peak)[np.argmax(s[peak])])
-    return [dh[i], dh[j]], [float(s[i]), float(s[j])]
+        return [dh[i], dh2[i]], [float(sup[:, i].sum()), float(sup2[:, i].sum())]
+    # the best proposal, then the best on the segments it leaves unexplained
+    s1 = sup.sum(axis=0)
+    i = int(np.argmax(s1))
+    s2 = sup[sup[:, i] <= 0].sum(axis=0)
+    s2[_line_angle_deg(dh, dh[i][None]) < config.min_horizontal_separation_deg] = -1.0
+    j = int(np.argmax(s2))
+    if s2[j] <= 0:
+        return [dh[i]], [float(s1[i])]
+    return [dh[i], dh[j]], [float(s1[i]), float(s2[j])]
 
 
 def _finish(
@@ -385,7 +426,7 @@ def estimate_frame(
         dv = _sign_up(dv / np.linalg.norm(dv))
         if int(s.valid.sum()) < 2:
             raise GeometryError(f"vanishing points: {int(s.valid.sum())} usable segments (need at least 2)")
-        hs, hscores = _horizontal_proposals(dv, grid, config)
+        hs, hscores = _horizontal_proposals(s, K, dv, grid, config)
         dirs = [dv, *hs]
         scores = [float(grid.score(dv[None])[0]), *hscores]
         fixed = set() if config.refine_vertical else {0}
