@@ -1,0 +1,368 @@
+"""Render a synthetic walkthrough to a folder: video, intrinsics, GT trajectory, segments, axes, map.
+
+The layout (other stages read it):
+
+    DIR/video.mp4            mp4v, exactly N frames        DIR/frames/000000.png ...  (write_frames)
+    DIR/timestamps.txt       one float (s) per frame       DIR/camera.json            Camera.to_dict()
+    DIR/gt/trajectory.tum    t tx ty tz qx qy qz qw, T_wc  DIR/gt/segments.txt        x1 y1 z1 x2 y2 z2 axis
+    DIR/gt/axes.json         directions, vertical_index    DIR/gt/map.papl            the GT as a Map
+    DIR/scene.json           scene, config, seed, path length, the command that regenerates DIR
+
+Every file is written under a temporary name and renamed, so an interrupted run never leaves a
+half-written file under a final name.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shlex
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from papl_mapper import __version__
+from papl_mapper.errors import BackendUnavailableError, InputError
+from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
+from papl_mapper.synth.path import walkthrough
+from papl_mapper.synth.project import project, visible_points, visible_segments
+from papl_mapper.synth.render import Renderer
+from papl_mapper.synth.scenes import SCENES, Scene, make_scene
+
+KEYFRAME_EVERY = 10  # GT map keyframes: every 10th frame
+MAX_GT_POINTS = 2000
+WHITE_LEVEL = 230.0  # 8-bit value of a white surface facing the light; lights saturate
+
+ProgressCallback = Callable[[int, int, str], None]
+
+
+@dataclass
+class SynthConfig:
+    """Options of one synthetic walkthrough."""
+
+    scene: str = "corridor"
+    """Scene name: corridor, atlanta or garage."""
+    width: int = 640
+    """Image width in pixels."""
+    height: int = 480
+    """Image height in pixels."""
+    fps: float = 30.0
+    """Frames per second of the video."""
+    seconds: float = 10.0
+    """Length of the walkthrough in seconds; frames = round(seconds * fps)."""
+    hfov_deg: float = 70.0
+    """Horizontal field of view in degrees."""
+    noise_sigma: float = 0.0
+    """Standard deviation of Gaussian image noise in grey levels (0..255)."""
+    motion_blur: float = 0.0
+    """Shutter time as a fraction of the frame interval: blur along the image motion (0 = none)."""
+    exposure_jitter: float = 0.0
+    """RMS of slow exposure changes, in stops (0 = constant exposure)."""
+    seed: int = 0
+    """Seed of the scene textures, the path jitter, noise and exposure."""
+    write_frames: bool = False
+    """Also write every frame as frames/NNNNNN.png."""
+    supersample: int = 2
+    """Render at this multiple of the resolution and area-average down (anti-aliasing); 1..4."""
+    speed: float = 1.0
+    """Walking speed in metres per second."""
+
+    @property
+    def n_frames(self) -> int:
+        return int(round(self.seconds * self.fps))
+
+    def validate(self) -> None:
+        """InputError naming the first impossible option."""
+        if self.scene not in SCENES:
+            raise InputError(f"unknown scene {self.scene!r}; known scenes: {', '.join(SCENES)}")
+        if self.width <= 0 or self.height <= 0:
+            raise InputError(f"resolution {self.width}x{self.height} is impossible; give positive sizes")
+        if not (self.fps > 0 and math.isfinite(self.fps)):
+            raise InputError(f"frame rate {self.fps} is impossible; give a positive --fps")
+        if not (self.seconds > 0 and math.isfinite(self.seconds)) or self.n_frames < 1:
+            raise InputError(
+                f"{self.seconds} s at {self.fps} fps gives {self.n_frames} frames; give a longer --seconds"
+            )
+        if not 10 <= self.hfov_deg <= 150:
+            raise InputError(f"horizontal field of view {self.hfov_deg} deg is outside 10..150")
+        if self.noise_sigma < 0 or self.exposure_jitter < 0:
+            raise InputError("noise and exposure jitter must not be negative")
+        if not 0 <= self.motion_blur <= 1:
+            raise InputError(f"motion blur {self.motion_blur} is outside 0..1 (a fraction of the frame time)")
+        if self.supersample not in (1, 2, 3, 4):
+            raise InputError(f"supersample {self.supersample} must be 1, 2, 3 or 4")
+        if not 0 < self.speed <= 5:
+            raise InputError(f"walking speed {self.speed} m/s is outside (0, 5]")
+
+    def camera(self) -> Camera:
+        """Pinhole camera, zero distortion, principal point at the image centre."""
+        f = (self.width / 2) / math.tan(math.radians(self.hfov_deg) / 2)
+        return Camera(self.width, self.height, f, f, (self.width - 1) / 2, (self.height - 1) / 2)
+
+    def command(self, out_dir: str | os.PathLike) -> str:
+        """The `papl-map synth` command line that regenerates this walkthrough into out_dir."""
+        args = ["papl-map", "synth", self.scene, "--out", str(out_dir)]
+        args += ["--width", str(self.width), "--height", str(self.height), "--fps", f"{self.fps:g}"]
+        args += ["--seconds", f"{self.seconds:g}", "--hfov", f"{self.hfov_deg:g}"]
+        args += ["--noise", f"{self.noise_sigma:g}", "--blur", f"{self.motion_blur:g}"]
+        args += ["--exposure", f"{self.exposure_jitter:g}", "--seed", str(self.seed)]
+        args += ["--supersample", str(self.supersample), "--speed", f"{self.speed:g}"]
+        if self.write_frames:
+            args.append("--frames")
+        return shlex.join(args)
+
+
+def generate(
+    config: SynthConfig, out_dir: str | os.PathLike, progress: ProgressCallback | None = None
+) -> Path:
+    """Render the walkthrough of `config` into out_dir (created if missing) and return out_dir."""
+    config.validate()
+    out = Path(out_dir)
+    _prepare_dir(out)
+    scene = make_scene(config.scene, config.seed)
+    camera = config.camera()
+    n = config.n_frames
+    timestamps, T_wc = walkthrough(scene, n, config.fps, config.seed, config.speed)
+    renderer = Renderer(scene, camera, config.supersample)
+    post = _PostProcess(config, camera, timestamps, T_wc)
+    (out / "gt").mkdir(exist_ok=True)
+    tmp_video = out / ".video.tmp.mp4"
+    frames_tmp = out / ".frames.tmp" if config.write_frames else None
+    if frames_tmp is not None:
+        shutil.rmtree(frames_tmp, ignore_errors=True)
+        frames_tmp.mkdir()
+    writer = cv2.VideoWriter(
+        str(tmp_video), cv2.VideoWriter_fourcc(*"mp4v"), config.fps, (camera.width, camera.height)
+    )
+    if not writer.isOpened():
+        raise BackendUnavailableError(f"{tmp_video}: OpenCV cannot open an mp4v video writer (no FFmpeg?)")
+    try:
+        for i in range(n):
+            img, depth = renderer.render(T_wc[i], with_depth=post.needs_depth)
+            frame = post.apply(i, img, depth)
+            writer.write(frame)
+            if frames_tmp is not None:
+                cv2.imwrite(str(frames_tmp / f"{i:06d}.png"), frame)
+            if progress is not None:
+                progress(i + 1, n, "frames")
+    except BaseException:
+        writer.release()
+        tmp_video.unlink(missing_ok=True)
+        if frames_tmp is not None:
+            shutil.rmtree(frames_tmp, ignore_errors=True)
+        raise
+    writer.release()
+    os.replace(tmp_video, out / "video.mp4")
+    if frames_tmp is not None:
+        shutil.rmtree(out / "frames", ignore_errors=True)
+        os.replace(frames_tmp, out / "frames")
+    _write_text(out / "timestamps.txt", "".join(f"{t:.9f}\n" for t in timestamps))
+    _write_text(out / "camera.json", json.dumps(camera.to_dict(), indent=2) + "\n")
+    _write_text(out / "gt" / "trajectory.tum", trajectory_tum(timestamps, T_wc))
+    _write_text(out / "gt" / "segments.txt", segments_txt(scene))
+    axes = {"directions": scene.axes.tolist(), "vertical_index": 0, "names": scene.axis_names}
+    _write_text(out / "gt" / "axes.json", json.dumps(axes, indent=2) + "\n")
+    gt_map(scene, camera, timestamps, T_wc, config).save(out / "gt" / "map.papl")
+    length = float(np.linalg.norm(np.diff(T_wc[:, :3, 3], axis=0), axis=1).sum())
+    info = {
+        "scene": config.scene,
+        "seed": config.seed,
+        "frames": n,
+        "path_length_m": round(length, 4),
+        "config": dataclasses.asdict(config),
+        "command": config.command(out_dir),
+        "software_version": __version__,
+        "segments": int(len(scene.segments)),
+        "axes": scene.axis_names,
+    }
+    _write_text(out / "scene.json", json.dumps(info, indent=2) + "\n")
+    return out
+
+
+def _prepare_dir(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder; choose another --out")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".probe.", dir=out)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise InputError(f"{out}: cannot write there ({exc.strerror}); choose a writable --out") from exc
+
+
+def _write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def trajectory_tum(timestamps: np.ndarray, T_wc: np.ndarray) -> str:
+    """TUM lines `t tx ty tz qx qy qz qw` of camera -> world poses."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(T_wc[:, :3, :3]).as_quat()  # x y z w
+    rows = [
+        f"{t:.9f} " + " ".join(f"{x:.9f}" for x in (*p, *qq))
+        for t, p, qq in zip(timestamps, T_wc[:, :3, 3], q, strict=True)
+    ]
+    return "# timestamp tx ty tz qx qy qz qw (T_wc, camera to world, metres)\n" + "\n".join(rows) + "\n"
+
+
+def segments_txt(scene: Scene) -> str:
+    """`x1 y1 z1 x2 y2 z2 axis` lines; axis -1 marks non-structural segments."""
+    rows = [
+        " ".join(f"{x:.6f}" for x in seg.ravel()) + f" {int(a)}"
+        for seg, a in zip(scene.segments, scene.segment_axis, strict=True)
+    ]
+    return "# x1 y1 z1 x2 y2 z2 axis (world, metres; axis -1 = non-structural)\n" + "\n".join(rows) + "\n"
+
+
+def gt_map(
+    scene: Scene, camera: Camera, timestamps: np.ndarray, T_wc: np.ndarray, config: SynthConfig
+) -> Map:
+    """The ground truth as a Map: keyframes every 10th frame, corner points, GT segments, axes."""
+    kf_frames = np.arange(0, len(T_wc), KEYFRAME_EVERY)
+    kf_T = T_wc[kf_frames]
+    kf_ids = np.arange(len(kf_frames), dtype=np.int64)
+    keyframes = Keyframes(
+        kf_ids, kf_frames.astype(np.int64), timestamps[kf_frames].astype(float), kf_T.copy()
+    )
+    pts = scene.corner_points()
+    if len(pts) > MAX_GT_POINTS:
+        pts = pts[np.random.default_rng(config.seed).choice(len(pts), MAX_GT_POINTS, replace=False)]
+    p_obs, p_uv, l_obs, l_xy = [], [], [], []
+    for k, T in zip(kf_ids, kf_T, strict=True):
+        idx, uv = visible_points(scene, camera, T, pts)
+        p_obs.append(np.column_stack([idx, np.full(len(idx), k)]))
+        p_uv.append(uv)
+        sidx, xy = visible_segments(scene, camera, T, scene.segments)
+        l_obs.append(np.column_stack([sidx, np.full(len(sidx), k)]))
+        l_xy.append(xy)
+    points = Points(
+        np.arange(len(pts), dtype=np.int64),
+        pts.astype(float),
+        np.full((len(pts), 3), 255, np.uint8),
+        np.concatenate(p_obs).astype(np.int64).reshape(-1, 2),
+        np.concatenate(p_uv).reshape(-1, 2),
+    )
+    M = len(scene.segments)
+    axis = scene.segment_axis
+    weights = np.zeros((M, len(scene.axes)))
+    weights[axis >= 0, axis[axis >= 0]] = 1.0
+    ref, inv_depth = _reference_keyframes(camera, kf_T, scene.segments.mean(axis=1))
+    anchored = axis >= 0
+    lines = Lines(
+        np.arange(M, dtype=np.int64),
+        scene.segments.copy(),
+        weights,
+        np.where(anchored, LineState.ANCHORED, LineState.ORTHONORMAL).astype(np.int8),
+        np.where(anchored, ref, -1).astype(np.int64),
+        np.where(anchored, inv_depth, np.nan),
+        np.concatenate(l_obs).astype(np.int64).reshape(-1, 2),
+        np.concatenate(l_xy).reshape(-1, 4),
+    )
+    metadata = {
+        "units": "m",
+        "source": "papl-map synth (ground truth)",
+        "scene": scene.name,
+        "axis_names": scene.axis_names,
+        "config": dataclasses.asdict(config),
+        "software_version": __version__,
+    }
+    return Map(camera, keyframes, points, lines, Axes(scene.axes.copy(), 0), metadata)
+
+
+def _reference_keyframes(camera: Camera, kf_T: np.ndarray, mids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment midpoint: the keyframe seeing it nearest inside the image (else the nearest in
+    front, else the nearest at all) and the midpoint's inverse depth (inverse distance if behind)."""
+    best = np.full(len(mids), -1, np.int64)
+    score = np.full(len(mids), np.inf)
+    inv = np.full(len(mids), np.nan)
+    for k, T in enumerate(kf_T):
+        uv, z = project(camera, T, mids)
+        dist = np.linalg.norm(mids - T[:3, 3], axis=1)
+        inside = (
+            (z > 0.1)
+            & (np.abs(uv[:, 0] - camera.cx) < camera.width / 2)
+            & (np.abs(uv[:, 1] - camera.cy) < camera.height / 2)
+        )
+        s = np.where(inside, z, np.where(z > 0.1, 1e3 + z, 1e6 + dist))
+        better = s < score
+        best[better] = k
+        score[better] = s[better]
+        inv[better] = np.where(z[better] > 0.1, 1 / np.maximum(z[better], 1e-9), 1 / dist[better])
+    return best, inv
+
+
+class _PostProcess:
+    """Motion blur along the image motion, exposure changes and noise: seeded per frame."""
+
+    def __init__(self, config: SynthConfig, camera: Camera, timestamps: np.ndarray, T_wc: np.ndarray):
+        self.c = config
+        self.camera = camera
+        self.T_wc = T_wc
+        rng = np.random.default_rng([config.seed, 23])
+        k = 3
+        f = rng.uniform(0.05, 0.3, k)
+        ph = rng.uniform(0, 2 * math.pi, k)
+        wave = np.sin(2 * math.pi * f[None] * timestamps[:, None] + ph[None]).sum(1) * math.sqrt(2.0 / k)
+        self.gain = (2.0 ** (config.exposure_jitter * wave)).astype(np.float32)
+        self.needs_depth = config.motion_blur > 0
+
+    def apply(self, i: int, img: np.ndarray, depth: np.ndarray | None) -> np.ndarray:
+        """float32 BGR in [0, 1.5] -> uint8 BGR frame."""
+        if self.c.motion_blur > 0 and depth is not None:
+            img = self._blur(i, img, depth)
+        out = img * (np.float32(WHITE_LEVEL) * self.gain[i])
+        if self.c.noise_sigma > 0:
+            rng = np.random.default_rng([self.c.seed, 31, i])
+            out += rng.standard_normal(out.shape, dtype=np.float32) * np.float32(self.c.noise_sigma)
+        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+    def image_motion(self, i: int, depth: np.ndarray) -> np.ndarray:
+        """Median image motion (dx, dy) in pixels per frame at frame i (from depth and the next pose)."""
+        j = min(i + 1, len(self.T_wc) - 1)
+        if j == i:
+            j = max(i - 1, 0)
+        cam = self.camera
+        gy, gx = np.mgrid[8 : cam.height : 16, 8 : cam.width : 16]
+        z = depth[gy, gx].ravel()
+        ok = np.isfinite(z)
+        if not ok.any():
+            return np.zeros(2)
+        uv = np.column_stack([gx.ravel(), gy.ravel()])[ok].astype(float)
+        Xc = (
+            np.column_stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))])
+            * z[ok, None]
+        )
+        Xw = Xc @ self.T_wc[i][:3, :3].T + self.T_wc[i][:3, 3]
+        uv2, z2 = project(cam, self.T_wc[j], Xw)
+        good = z2 > 0.05
+        if not good.any():
+            return np.zeros(2)
+        flow = np.median(uv2[good] - uv[good], axis=0)
+        return flow if j > i else -flow
+
+    def _blur(self, i: int, img: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        d = self.image_motion(i, depth) * self.c.motion_blur
+        length = float(np.hypot(*d))
+        if length < 0.5:
+            return img
+        r = int(math.ceil(length / 2)) + 1
+        size = 2 * r + 1
+        kernel = np.zeros((size * 4, size * 4), np.float32)  # drawn at 4x, then area-averaged
+        c = np.array([size * 2, size * 2], float)
+        p0 = np.round((c - d * 2) * 16).astype(int)
+        p1 = np.round((c + d * 2) * 16).astype(int)
+        cv2.line(kernel, tuple(p0), tuple(p1), 1.0, thickness=4, lineType=cv2.LINE_AA, shift=4)
+        kernel = cv2.resize(kernel, (size, size), interpolation=cv2.INTER_AREA)
+        kernel /= kernel.sum()
+        return cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
