@@ -54,8 +54,10 @@ class VPConfig:
     to the vanishing point is below this."""
     refine_angle_deg: float = 2.0
     """Inlier angle for the SVD refinement sets."""
-    refine_iterations: int = 2
-    """Refine-then-reclassify rounds."""
+    refine_iterations: int = 3
+    """Refine-then-reclassify rounds (iteratively reweighted)."""
+    refine_cauchy_deg: float = 2.0
+    """Scale of the Cauchy weight 1 / (1 + (angle / scale)^2) of a segment in the SVD refinement."""
     min_inliers: int = 3
     """Fewest inlier segments for a horizontal direction to be reported and refined."""
     min_horizontal_separation_deg: float = 10.0
@@ -255,19 +257,24 @@ def _sign_horizontal(v: np.ndarray) -> np.ndarray:
     return v if v[0] >= 0 else -v
 
 
-def _inlier_sets(s: _Segments, K: np.ndarray, dirs: np.ndarray, thr_deg: float) -> list[np.ndarray]:
-    """Per direction, the valid segments closest to it within thr_deg."""
+def _inlier_sets(
+    s: _Segments, K: np.ndarray, dirs: np.ndarray, thr_deg: float
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Per direction, the valid segments closest to it within thr_deg; and the (S, V) angles."""
     if len(dirs) == 0:
-        return []
+        return [], np.zeros((len(s.seg), 0))
     ang = segment_vp_angles_deg(s.seg, K, dirs)  # (S, V)
     best = np.argmin(ang, axis=1)
     ok = s.valid & (ang[np.arange(len(best)), best] < thr_deg)
-    return [np.flatnonzero(ok & (best == j)) for j in range(len(dirs))]
+    return [np.flatnonzero(ok & (best == j)) for j in range(len(dirs))], ang
 
 
-def _svd_direction(s: _Segments, idx: np.ndarray, d0: np.ndarray) -> np.ndarray:
-    """Smallest right singular vector of the length-weighted segment normals, signed like d0."""
-    M = s.normals[idx] * np.sqrt(s.length[idx])[:, None]
+def _svd_direction(s: _Segments, idx: np.ndarray, d0: np.ndarray, robust_w: np.ndarray) -> np.ndarray:
+    """Smallest right singular vector of the weighted segment normals (paper: M x = 0), signed like d0.
+
+    Rows are weighted by sqrt(length) (longer segments are better measured) times a Cauchy weight of
+    their current angle, so that a stray segment just inside the inlier angle barely pulls."""
+    M = s.normals[idx] * (np.sqrt(s.length[idx]) * robust_w)[:, None]
     d = np.linalg.svd(M, full_matrices=False)[2][-1]
     return d if d @ d0 >= 0 else -d
 
@@ -373,19 +380,24 @@ def _finish(
     fixed: set[int],
     config: VPConfig,
     method: str,
+    prior: bool,
 ) -> VPResult:
-    """SVD refinement rounds, removal of weak or duplicate directions, classification, signs."""
+    """SVD refinement rounds, removal of weak or duplicate directions, classification, signs.
+
+    A vertical given as a prior is always kept; one found by the search needs min_inliers segments
+    like the horizontals (a Manhattan triple from two horizontals implies an unsupported vertical)."""
     D = np.array(dirs, np.float64).reshape(-1, 3)
     if config.refine_svd:
         for _ in range(max(1, config.refine_iterations)):
-            sets = _inlier_sets(s, K, D, config.refine_angle_deg)
+            sets, ang = _inlier_sets(s, K, D, config.refine_angle_deg)
             for j, idx in enumerate(sets):
                 if j not in fixed and len(idx) >= max(2, config.min_inliers):
-                    D[j] = _svd_direction(s, idx, D[j])
-    sets = _inlier_sets(s, K, D, config.inlier_angle_deg)
+                    robust = 1.0 / (1.0 + (ang[idx, j] / config.refine_cauchy_deg) ** 2)
+                    D[j] = _svd_direction(s, idx, D[j], robust)
+    sets, _ = _inlier_sets(s, K, D, config.inlier_angle_deg)
     keep: list[int] = []
     for j in range(len(D)):
-        if j == vertical_index:
+        if j == vertical_index and (prior or len(sets[j]) >= config.min_inliers):
             keep.append(j)
             continue
         if len(sets[j]) < config.min_inliers:
@@ -431,11 +443,11 @@ def estimate_frame(
         scores = [float(grid.score(dv[None])[0]), *hscores]
         fixed = set() if config.refine_vertical else {0}
         method = "vertical-prior-manhattan" if config.manhattan_only else "vertical-prior-atlanta"
-        return _finish(s, K, dirs, scores, 0, fixed, config, method)
+        return _finish(s, K, dirs, scores, 0, fixed, config, method, prior=True)
     triple, _ = _two_line_search(s, grid, config)
     vi = _pick_vertical(triple, config)
     scores = [float(x) for x in grid.score(triple)]
-    return _finish(s, K, list(triple), scores, vi, set(), config, "two-line-manhattan")
+    return _finish(s, K, list(triple), scores, vi, set(), config, "two-line-manhattan", prior=False)
 
 
 def estimate_vertical(
