@@ -259,7 +259,7 @@ def read_camera_file(path: str | Path) -> Camera:
     stripped = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if stripped and any(ln.split(":")[0].strip().startswith("P") and ":" in ln for ln in stripped):
         return read_kitti_calib(path)
-    if stripped and len(stripped[0].split()) >= 5 and stripped[0].split()[1].isalpha():
+    if stripped and len(stripped[0].split()) >= 5 and stripped[0].split()[1].replace("_", "").isalpha():
         return read_colmap_cameras(path)
     raise InputError(
         f"{path}: unrecognised camera file; use camera.json, OpenCV YAML/JSON, COLMAP cameras.txt "

@@ -1,6 +1,6 @@
-"""Pyramidal Lucas-Kanade flow with a forward-backward check, on pyramids built once per frame.
+"""Pyramidal Lucas-Kanade flow with a forward-backward check.
 
-Points and line samples of one frame share the pyramids, so each image is pyramided once.
+(OpenCV's Python binding takes only images, not prebuilt pyramids, so each call pyramids both.)
 """
 
 from __future__ import annotations
@@ -27,21 +27,10 @@ class FlowConfig:
     """LK convergence threshold in pixels."""
 
 
-Pyramid = tuple[list[np.ndarray], int]  # (levels with derivatives, max level)
-
-
-def build_pyramid(gray: np.ndarray, config: FlowConfig) -> Pyramid:
-    """Image pyramid with derivatives for calcOpticalFlowPyrLK."""
-    levels, pyr = cv2.buildOpticalFlowPyramid(
-        gray, (config.win_size, config.win_size), config.levels, withDerivatives=True
-    )
-    return list(pyr), levels
-
-
 def track_klt(
-    prev: Pyramid, cur: Pyramid, uv: np.ndarray, config: FlowConfig, width: int, height: int
+    prev: np.ndarray, cur: np.ndarray, uv: np.ndarray, config: FlowConfig, width: int, height: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Track (N, 2) pixels from prev to cur; returns new pixels (N, 2) float32 and a kept mask (N,).
+    """Track (N, 2) pixels from gray image prev to cur: new pixels (N, 2) float32, kept mask (N,).
 
     Kept: found forward and backward, the round trip within fb_threshold_px, inside the image.
     """
@@ -49,15 +38,11 @@ def track_klt(
     if n == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
     p0 = np.ascontiguousarray(uv, np.float32).reshape(-1, 1, 2)
-    level = min(prev[1], cur[1])
+    level = config.levels
     win = (config.win_size, config.win_size)
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.max_iterations, config.epsilon)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-        prev[0], cur[0], p0, None, winSize=win, maxLevel=level, criteria=crit
-    )
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
-        cur[0], prev[0], p1, None, winSize=win, maxLevel=level, criteria=crit
-    )
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, winSize=win, maxLevel=level, criteria=crit)
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, winSize=win, maxLevel=level, criteria=crit)
     p1 = p1.reshape(-1, 2)
     fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= config.fb_threshold_px)

@@ -33,7 +33,7 @@ class LineConfig:
     """Shortest segment kept (after fusion), in pixels of the processed image."""
     max_segments: int = 250
     """Keep at most this many segments per frame, the longest."""
-    ed_gradient_threshold: int = 20
+    ed_gradient_threshold: int = 30
     """EdgeDrawing gradient threshold (lower finds weaker edges)."""
     ed_sigma: float = 1.0
     """EdgeDrawing Gaussian smoothing."""
@@ -118,11 +118,10 @@ def fuse_collinear(segs: np.ndarray, angle_deg: float, dist_px: float, gap_px: f
     length = np.linalg.norm(d, axis=1)
     u = d / np.maximum(length, 1e-9)[:, None]
     nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
-    cos = np.abs(u @ u.T)
-    cand = cos >= np.cos(np.radians(angle_deg))
-    np.fill_diagonal(cand, False)
-    cand = np.triu(cand)
-    ii, jj = np.nonzero(cand)
+    ii, jj = _similar_angle_pairs(u, np.radians(angle_deg))
+    mid = (p1 + p2) / 2
+    near = np.linalg.norm(mid[ii] - mid[jj], axis=1) <= (length[ii] + length[jj]) / 2 + gap_px
+    ii, jj = ii[near], jj[near]
     if len(ii) == 0:
         return segs
     # distance of j's endpoints to line i and of i's endpoints to line j
@@ -152,12 +151,12 @@ def fuse_collinear(segs: np.ndarray, angle_deg: float, dist_px: float, gap_px: f
         if ra != rb:
             parent[rb] = ra
     roots = np.array([find(a) for a in range(n)])
-    out = []
-    for r in np.unique(roots):
-        members = np.flatnonzero(roots == r)
-        if len(members) == 1:
-            out.append(segs[members[0]])
-            continue
+    single = np.bincount(roots, minlength=n)[roots] == 1
+    out = list(segs[single])
+    multi = np.flatnonzero(~single)
+    order = multi[np.argsort(roots[multi], kind="stable")]
+    splits = np.flatnonzero(np.diff(roots[order])) + 1
+    for members in np.split(order, splits) if len(order) else []:
         ref = u[members[np.argmax(length[members])]]
         sign = np.where(u[members] @ ref < 0, -1.0, 1.0)
         direction = np.sum(u[members] * (sign * length[members])[:, None], axis=0)
@@ -168,6 +167,28 @@ def fuse_collinear(segs: np.ndarray, angle_deg: float, dist_px: float, gap_px: f
         t = (pts - centre) @ direction
         out.append(np.concatenate([centre + t.min() * direction, centre + t.max() * direction]))
     return np.array(out, np.float64)
+
+
+def _similar_angle_pairs(u: np.ndarray, thr_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (i < j) of unit directions (N, 2) within thr_rad as undirected lines, via a sorted sweep."""
+    theta = np.mod(np.arctan2(u[:, 1], u[:, 0]), np.pi)
+    order = np.argsort(theta)
+    th = theta[order]
+    n = len(th)
+    ext = np.concatenate([th, th + np.pi])  # wrap-around: lines near 0 and near pi are similar
+    start = np.arange(1, n + 1)
+    stop = np.minimum(np.searchsorted(ext, th + thr_rad, side="right"), np.arange(n) + n)
+    count = np.maximum(stop - start, 0)
+    if count.sum() == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    a = np.repeat(np.arange(n), count)
+    offs = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    b = (np.repeat(start, count) + offs) % n
+    i, j = order[a], order[b]
+    keep = i != j
+    i, j = i[keep], j[keep]
+    key = np.unique(np.minimum(i, j).astype(np.int64) * n + np.maximum(i, j))
+    return key // n, key % n
 
 
 def orient_by_polarity(segs: np.ndarray, gray: np.ndarray, offset_px: float = 2.0) -> np.ndarray:

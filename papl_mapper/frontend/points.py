@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from papl_mapper.frontend.klt import FlowConfig, Pyramid, track_klt
+from papl_mapper.frontend.klt import FlowConfig, track_klt
 
 log = logging.getLogger(__name__)
 
@@ -77,12 +77,12 @@ class PointTracker:
         self._lost = _Lost(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64), np.zeros(0))
         self._orb = cv2.ORB_create(edgeThreshold=15, patchSize=15)
 
-    def step(self, gray: np.ndarray, prev: Pyramid | None, cur: Pyramid, force_detect: bool = False) -> None:
-        """Follow live tracks from prev to cur and replenish corners where the image is sparse."""
+    def step(self, gray: np.ndarray, prev: np.ndarray | None, force_detect: bool = False) -> None:
+        """Follow live tracks from gray image prev to gray; replenish corners where sparse."""
         self.frame += 1
         self.flow_from = self.flow_to = np.zeros((0, 2), np.float32)
         if prev is not None and len(self.ids):
-            new_uv, ok = track_klt(prev, cur, self.uv, self.flow, self.width, self.height)
+            new_uv, ok = track_klt(prev, gray, self.uv, self.flow, self.width, self.height)
             self._forget(self.ids[~ok])
             self.flow_from, self.flow_to = self.uv[ok], new_uv[ok]
             self.ids, self.uv = self.ids[ok], new_uv[ok]

@@ -20,7 +20,7 @@ import numpy as np
 from papl_mapper.errors import GeometryError, InputError
 from papl_mapper.frontend.camera import Undistorter, fit_camera
 from papl_mapper.frontend.keyframes import KeyframeConfig, KeyframeSelector
-from papl_mapper.frontend.klt import FlowConfig, build_pyramid
+from papl_mapper.frontend.klt import FlowConfig
 from papl_mapper.frontend.lines import LBD, LineConfig, LineTracker, SegmentDetector
 from papl_mapper.frontend.points import PointConfig, PointTracker
 from papl_mapper.frontend.vanishing import VPConfig, estimate_frame, estimate_vertical, update_vertical
@@ -31,7 +31,7 @@ from papl_mapper.tracks import Tracks
 log = logging.getLogger(__name__)
 
 ProgressCallback = Callable[[int, int, str], None]
-STEPS = ("decode", "convert", "pyramid", "points", "lines", "line_tracking", "keyframes", "descriptors", "vp")
+STEPS = ("decode", "convert", "points", "lines", "line_tracking", "keyframes", "descriptors", "vp")
 
 
 @dataclass
@@ -106,7 +106,7 @@ def process(
     l_frame, l_track, l_xy = [], [], []
     pd_row, pd_desc, ld_row, ld_desc = [], [], [], []
     n_points = n_lines = 0
-    prev_pyr = None
+    prev_gray = None
     total = recording.expected_frames()
     done = 0
     it = iter(recording)
@@ -123,15 +123,13 @@ def process(
         sec["convert"] += t2 - t1
         if _is_textureless(gray, config.min_texture_std):
             skipped.append(frame.index)
-            prev_pyr = None
+            prev_gray = None
             if progress:
                 progress(done, total, f"frame {frame.index}: skipped (no texture)")
             continue
-        pyr = build_pyramid(gray, config.flow)
-        t3 = time.perf_counter()
-        sec["pyramid"] += t3 - t2
-        restart = prev_pyr is None
-        points.step(gray, prev_pyr, pyr, force_detect=restart)
+        t3 = t2
+        restart = prev_gray is None
+        points.step(gray, prev_gray, force_detect=restart)
         t4 = time.perf_counter()
         sec["points"] += t4 - t3
         segs = detector.detect(gray)
@@ -170,7 +168,7 @@ def process(
         l_track.append(lines.ids.copy())
         l_xy.append(und.segments(lines.segs))
         n_lines += s
-        prev_pyr = pyr
+        prev_gray = gray
         if progress:
             progress(
                 done, total, f"frame {frame.index}: {k} points, {s} segments{', keyframe' if kf else ''}"

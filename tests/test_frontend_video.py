@@ -1,0 +1,139 @@
+"""Decoding: videos and image folders, frame selection, timestamps, scaling, bad inputs."""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+import pytest
+
+from papl_mapper.errors import InputError
+from papl_mapper.frontend.video import open_recording, read_timestamps
+
+FPS = 30
+N = 45
+W, H = 320, 240
+
+
+def _frame(i: int) -> np.ndarray:
+    """Frame i shows its index as a grey level (decoded back within codec noise) and a bar."""
+    img = np.full((H, W, 3), 4 * i, np.uint8)
+    cv2.rectangle(img, (10 + 2 * i, 60), (60 + 2 * i, 180), (255, 255, 255), -1)
+    return img
+
+
+def _write(path, fourcc: str, n: int = N) -> None:
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), FPS, (W, H))
+    assert w.isOpened()
+    for i in range(n):
+        w.write(_frame(i))
+    w.release()
+
+
+def _level(img: np.ndarray) -> float:
+    """Grey level of the background area (frame index * 4)."""
+    g = img if img.ndim == 2 else img[..., 1]
+    return float(np.median(g[: g.shape[0] // 5, :]))
+
+
+@pytest.fixture(scope="module")
+def mp4(tmp_path_factory):
+    path = tmp_path_factory.mktemp("video") / "walk.mp4"
+    _write(path, "mp4v")
+    return path
+
+
+def test_video_all_frames_with_true_timestamps(mp4):
+    rec = open_recording(mp4)
+    assert (rec.width, rec.height, rec.fps, rec.frame_count) == (W, H, FPS, N)
+    frames = list(rec)
+    assert [f.index for f in frames] == list(range(N))
+    t = np.array([f.timestamp_s for f in frames])
+    np.testing.assert_allclose(t, np.arange(N) / FPS, atol=1e-3)
+    levels = np.array([_level(f.image) for f in frames])
+    np.testing.assert_allclose(levels, 4 * np.arange(N), atol=3)
+    assert not rec.stopped_early
+    assert rec.decoded_frames == N == rec.expected_frames()
+
+
+def test_video_step_time_range_and_max_size(mp4):
+    rec = open_recording(mp4, step=3, start_s=0.5, end_s=1.2, max_size=160, gray=True)
+    frames = list(rec)
+    idx = [f.index for f in frames]
+    assert idx == list(range(15, 37, 3))  # 0.5 s = frame 15, 1.2 s = frame 36
+    assert len(idx) == rec.expected_frames()
+    assert frames[0].image.shape == (120, 160)
+    assert rec.scale_xy == (0.5, 0.5)
+    assert abs(_level(frames[0].image) - 60) <= 3
+
+
+def test_iteration_can_stop_early_and_restart(mp4):
+    rec = open_recording(mp4, prefetch=2)
+    for k, _ in enumerate(rec):
+        if k == 3:
+            break
+    assert len(list(rec)) == N
+
+
+def test_image_folder_natural_order_and_timestamps_file(tmp_path):
+    for i in range(12):
+        cv2.imwrite(str(tmp_path / f"frame{i}.png"), _frame(i))
+    stamps = 100.0 + 0.05 * np.arange(12)
+    (tmp_path / "timestamps.txt").write_text("# t\n" + "\n".join(f"{t:.6f}" for t in stamps))
+    rec = open_recording(tmp_path, step=2)
+    frames = list(rec)
+    assert [f.index for f in frames] == [0, 2, 4, 6, 8, 10]  # frame10 sorts after frame9
+    np.testing.assert_allclose([f.timestamp_s for f in frames], stamps[::2])
+    np.testing.assert_allclose([_level(f.image) for f in frames], 4 * np.arange(0, 12, 2), atol=1)
+    assert rec.fps == pytest.approx(20.0)
+
+
+def test_timestamps_by_file_name(tmp_path):
+    p = tmp_path / "rgb.txt"
+    p.write_text("0.2 b.png\n0.1 a.png\n")
+    np.testing.assert_allclose(read_timestamps(p, ["a.png", "b.png"]), [0.1, 0.2])
+    with pytest.raises(InputError, match="no timestamp for c.png"):
+        read_timestamps(p, ["a.png", "c.png"])
+
+
+def test_truncated_stream_decodes_what_is_readable(tmp_path, caplog):
+    full = tmp_path / "full.avi"
+    _write(full, "MJPG")
+    data = full.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) // 2])
+    rec = open_recording(cut)
+    with caplog.at_level(logging.WARNING):
+        frames = list(rec)
+    assert 5 < len(frames) < N
+    assert rec.stopped_early and rec.stopped_at_frame == frames[-1].index
+    assert "announced" in rec.stop_message
+    assert "cut.avi" in caplog.text
+    np.testing.assert_allclose([_level(f.image) for f in frames], 4 * np.arange(len(frames)), atol=3)
+
+
+def test_bad_inputs(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        open_recording(tmp_path / "missing.mp4")
+    text = tmp_path / "notes.mp4"
+    text.write_text("this is not a video\n" * 100)
+    with pytest.raises(InputError, match="notes.mp4"):
+        open_recording(text)
+    empty = tmp_path / "empty.mp4"
+    empty.write_bytes(b"")
+    with pytest.raises(InputError, match="empty"):
+        open_recording(empty)
+    zero = tmp_path / "zero.avi"
+    _write(zero, "MJPG", n=0)
+    with pytest.raises(InputError, match="zero.avi"):
+        open_recording(zero)
+    folder = tmp_path / "nothing"
+    folder.mkdir()
+    with pytest.raises(InputError, match="no images"):
+        open_recording(folder)
+
+
+def test_time_range_without_frames_is_an_input_error(mp4):
+    with pytest.raises(InputError, match="time range"):
+        open_recording(mp4, start_s=100.0)
