@@ -122,11 +122,12 @@ def export_colmap(m: Map, options: ExportOptions | None = None) -> dict[str, byt
         )
     )
     p2d_rows = _lines_of(format_rows("%.9g %.9g %d\n", uv[by_img] + PIXEL_CENTRE_OFFSET, prow[by_img] + 1))
+    mean_obs = len(obs) / max(len(kf), 1)
     images = [
         b"# Image list with two lines of data per image:\n",
         b"#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n",
         b"#   POINTS2D[] as (X, Y, POINT3D_ID)\n",
-        f"# Number of images: {len(kf)}, mean observations per image: {len(obs) / max(len(kf), 1):.6g}\n".encode(),
+        f"# Number of images: {len(kf)}, mean observations per image: {mean_obs:.6g}\n".encode(),
     ]
     for i in range(len(kf)):
         images.append(pose_rows[i] + b" " + names[i].encode() + b"\n")

@@ -115,7 +115,7 @@ def write_atomic(path: Path, data: bytes) -> Path:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    log.info("wrote %s (%s bytes)", path, f"{len(data):,}")
+    log.debug("wrote %s (%s bytes)", path, f"{len(data):,}")
     return path
 
 

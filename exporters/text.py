@@ -16,9 +16,9 @@ def format_rows(row_format: str, *columns: np.ndarray) -> bytes:
 
     Each column is (R,) or (R, k); the row format consumes the columns' values left to right.
     """
-    cols = [np.asarray(c).reshape(len(c), -1) for c in columns]
-    if not cols or len(cols[0]) == 0:
+    if not columns or len(columns[0]) == 0:
         return b""
+    cols = [np.asarray(c).reshape(len(c), -1) for c in columns]
     n = len(cols[0])
     width = sum(c.shape[1] for c in cols)
     out = []

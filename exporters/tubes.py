@@ -19,6 +19,8 @@ from .scene import ExportOptions, ExportScene, prepare
 def tube_mesh(segments_w: np.ndarray, radius: float, sides: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Vertices (S*2k, 3) float32, outward normals (S*2k, 3) float32, triangles (S*2k, 3) uint32."""
     s = len(segments_w)
+    if s == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32)
     p0 = segments_w[:, 0]
     d = segments_w[:, 1] - p0
     length = np.linalg.norm(d, axis=1, keepdims=True)
