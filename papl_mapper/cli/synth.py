@@ -37,8 +37,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    config = SynthConfig(
+def config_from_args(args: argparse.Namespace) -> SynthConfig:
+    """The SynthConfig the parsed command line asks for."""
+    return SynthConfig(
         scene=args.scene,
         width=args.width,
         height=args.height,
@@ -53,6 +54,10 @@ def run(args: argparse.Namespace) -> int:
         supersample=args.supersample,
         speed=args.speed,
     )
+
+
+def run(args: argparse.Namespace) -> int:
+    config = config_from_args(args)
     config.validate()
     with progress_bar(f"synth {config.scene}") as cb:
         out = generate(config, args.out, progress=cb)

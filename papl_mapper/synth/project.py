@@ -30,9 +30,13 @@ def project(camera: Camera, T_wc: np.ndarray, X_w: np.ndarray) -> tuple[np.ndarr
 
 
 def occluded(
-    scene: Scene, centre: np.ndarray, X_w: np.ndarray, quads: np.ndarray | None = None
+    scene: Scene,
+    centre: np.ndarray,
+    X_w: np.ndarray,
+    quads: np.ndarray | None = None,
+    margin: float = OCCLUSION_MARGIN,
 ) -> np.ndarray:
-    """(N,) whether a quad crosses the ray from `centre` to each point before the point."""
+    """(N,) whether a quad crosses the ray from `centre` to each point more than `margin` before it."""
     qc = scene.quad_corners if quads is None else scene.quad_corners[quads]
     p0 = qc[:, 0]
     u = qc[:, 1] - p0
@@ -49,7 +53,7 @@ def occluded(
             hit = centre + s[..., None] * d[:, None]  # (n, Q, 3)
             a = ((hit - p0) * u).sum(-1) / uu
             b = ((hit - p0) * v).sum(-1) / vv
-            before = (s > 1e-6) & (s < 1 - OCCLUSION_MARGIN / length[:, None])
+            before = (s > 1e-6) & (s < 1 - margin / length[:, None])
         out[i : i + 512] = (before & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)).any(axis=1)
     return out
 

@@ -1,0 +1,206 @@
+"""The synthetic ground truth is right numerically: GT segments project onto intensity edges of the
+rendered frames, GT points onto rendered surfaces, and the paths stay in free space."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from papl_mapper.synth import SynthConfig, make_scene, tracks_from_scene, walkthrough
+from papl_mapper.synth.project import occluded, project, visible_segments
+from papl_mapper.synth.render import Renderer
+
+SCENE_NAMES = ("corridor", "atlanta", "garage")
+EDGE_OFFSET_PX = 4.0  # "a few pixels away" from the projected segment
+EDGE_RATIO = 2.5  # gradient on the segment vs the weaker side
+MIN_EDGE_GRADIENT = 6.0  # grey levels per pixel (Sobel / 8) on the segment
+MIN_EDGE_FRACTION = 0.8  # of the visible, long-enough GT segments that must sit on an edge
+SHIFTED_MAX_FRACTION = 0.35  # the same test with a 1.5 deg wrong pose must mostly fail
+MIN_CLEARANCE_M = 0.3  # camera distance to any surface
+DEPTH_TOL_REL = 0.02  # rendered vs projected depth of visible GT points
+FRAMES = (0, 45, 90)
+DECAL_MARGIN_M = 0.1  # occluders closer than this along the ray are decals
+
+
+def _gray_gradient(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    g = cv2.cvtColor(np.clip(img * 230, 0, 255).astype(np.float32), cv2.COLOR_BGR2GRAY)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8
+    return gx, gy
+
+
+def _bilinear(a: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    m = cv2.remap(a, xy[:, 0].astype(np.float32)[None], xy[:, 1].astype(np.float32)[None], cv2.INTER_LINEAR)
+    return m[0]
+
+
+def edge_scores(cam, img, depth, T_wc, scene) -> tuple[int, int]:
+    """(segments on an edge, segments tested) for one frame: perpendicular gradient on vs beside."""
+    gx, gy = _gray_gradient(img)
+    sidx, _ = visible_segments(scene, cam, T_wc, scene.segments, occlusion=False, min_length_px=30)
+    tested = passed = 0
+    margin = EDGE_OFFSET_PX + 3
+    near_depth = cv2.erode(np.where(np.isfinite(depth), depth, 1e6).astype(np.float32), np.ones((3, 3)))
+    for s in sidx:
+        a, b = scene.segments[s]
+        X = a + np.linspace(0.05, 0.95, 40)[:, None] * (b - a)
+        uv, z = project(cam, T_wc, X)
+        inside = (
+            (z > 0.2)
+            & (uv[:, 0] > margin)
+            & (uv[:, 0] < cam.width - 1 - margin)
+            & (uv[:, 1] > margin)
+            & (uv[:, 1] < cam.height - 1 - margin)
+        )
+        if inside.sum() < 8:
+            continue
+        uv, z = uv[inside], z[inside]
+        d_img = near_depth[np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int)]
+        seen = z <= d_img * (1 + DEPTH_TOL_REL) + 0.02
+        if seen.sum() < 8:
+            continue
+        uv = uv[seen]
+        t = uv[-1] - uv[0]
+        if np.linalg.norm(t) < 20:
+            continue
+        n = np.array([-t[1], t[0]]) / np.linalg.norm(t)
+
+        def perp(p, n=n):
+            return np.abs(_bilinear(gx, p) * n[0] + _bilinear(gy, p) * n[1])
+
+        on = np.median(np.maximum.reduce([perp(uv + k * n) for k in (-1.0, -0.5, 0.0, 0.5, 1.0)]))
+        left = np.median(perp(uv - EDGE_OFFSET_PX * n))
+        right = np.median(perp(uv + EDGE_OFFSET_PX * n))
+        tested += 1
+        passed += bool(on >= MIN_EDGE_GRADIENT and on >= EDGE_RATIO * min(left, right))
+    return passed, tested
+
+
+@pytest.fixture(scope="module", params=SCENE_NAMES)
+def rendered(request):
+    cfg = SynthConfig(scene=request.param, width=320, height=240, fps=10, seconds=12.0, supersample=2)
+    scene = make_scene(cfg.scene, 0)
+    cam = cfg.camera()
+    t, T = walkthrough(scene, cfg.n_frames, cfg.fps, 0)
+    r = Renderer(scene, cam, cfg.supersample)
+    frames = [(T[i], *r.render(T[i], with_depth=True)) for i in FRAMES]
+    return scene, cam, frames
+
+
+def test_gt_segments_lie_on_rendered_edges(rendered):
+    scene, cam, frames = rendered
+    ok = n = 0
+    for T, img, depth in frames:
+        p, k = edge_scores(cam, img, depth, T, scene)
+        ok, n = ok + p, n + k
+    assert n >= 10, f"{scene.name}: only {n} GT segments visible in the test frames"
+    assert ok / n >= MIN_EDGE_FRACTION, f"{scene.name}: {ok}/{n} GT segments on edges"
+
+
+def test_edge_check_fails_with_a_wrong_pose(rendered):
+    """The check above can fail: a pose off by 1.5 degrees puts the segments beside the edges."""
+    scene, cam, frames = rendered
+    ok = n = 0
+    c, s = math.cos(math.radians(1.5)), math.sin(math.radians(1.5))
+    for T, img, depth in frames:
+        Tw = T.copy()
+        Tw[:3, :3] = (
+            T[:3, :3]
+            @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+            @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+        )
+        p, k = edge_scores(cam, img, depth, Tw, scene)
+        ok, n = ok + p, n + k
+    assert n >= 10
+    assert ok / n <= SHIFTED_MAX_FRACTION, f"{scene.name}: {ok}/{n} still pass with a wrong pose"
+
+
+def test_visible_points_are_on_rendered_surfaces(rendered):
+    """Points the geometric occlusion test calls visible sit at the rendered depth; hidden ones behind it."""
+    scene, cam, frames = rendered
+    T_all = np.stack([f[0] for f in frames])
+    tracks, pts = tracks_from_scene(scene, cam, T_all, np.arange(len(frames)) / 10.0, n_surface_points=3000)
+    for f, (T, _img, depth) in enumerate(frames):
+        ids, uv = tracks.points_in(f)
+        _, z = project(cam, T, pts[ids])
+        px = np.clip(np.round(uv).astype(int), 0, [cam.width - 1, cam.height - 1])
+        finite = np.where(np.isfinite(depth), depth, 1e6).astype(np.float32)
+        lo = cv2.erode(finite, np.ones((3, 3)))[px[:, 1], px[:, 0]]  # the pixel and its neighbours
+        hi = cv2.dilate(finite, np.ones((3, 3)))[px[:, 1], px[:, 0]]
+        agree = (z >= lo * (1 - DEPTH_TOL_REL) - 0.02) & (z <= hi * (1 + DEPTH_TOL_REL) + 0.02)
+        assert agree.mean() >= 0.95, f"{scene.name} frame {f}: {agree.mean():.3f} at rendered depth"
+        # points in view and in front but not observed must be hidden behind a nearer surface
+        uv_all, z_all = project(cam, T, pts)
+        inview = (z_all > 0.2) & (uv_all[:, 0] >= 0) & (uv_all[:, 0] <= cam.width - 1)
+        inview &= (uv_all[:, 1] >= 0) & (uv_all[:, 1] <= cam.height - 1)
+        hidden = np.setdiff1d(np.flatnonzero(inview), ids)
+        # leave out points under decals (paint, posters) a few mm above their surface
+        hidden = hidden[occluded(scene, T[:3, 3], pts[hidden], margin=DECAL_MARGIN_M)]
+        if len(hidden) >= 10:
+            ph = np.round(uv_all[hidden]).astype(int)
+            nearer = (
+                cv2.dilate(finite, np.ones((3, 3)))[ph[:, 1], ph[:, 0]]
+                < z_all[hidden] * (1 - DEPTH_TOL_REL) - 0.02
+            )
+            assert nearer.mean() >= 0.9, f"{scene.name} frame {f}: hidden points not behind a surface"
+
+
+@pytest.mark.parametrize("name", SCENE_NAMES)
+@pytest.mark.parametrize("seconds", [3.0, 40.0])
+def test_path_stays_in_free_space_and_returns(name, seconds):
+    scene = make_scene(name, 0)
+    t, T = walkthrough(scene, int(seconds * 15), 15.0, seed=3)
+    c = T[:, :3, 3]
+    assert scene.clearance(c).min() >= MIN_CLEARANCE_M
+    assert scene.in_free_space(c[:, :2], margin=MIN_CLEARANCE_M).all()
+    step = np.linalg.norm(np.diff(c, axis=0), axis=1) * 15.0
+    assert 0.5 <= np.median(step) <= 1.6, "walking speed about 1 m/s"
+    assert np.linalg.norm(c[-1] - c[0]) <= 0.1 * max(np.sum(step) / 15.0, 1.0) + 0.3, "returns near the start"
+    R = T[:, :3, :3]
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    # the camera looks roughly horizontally (small pitch and roll): its y axis points down
+    assert (R[:, 2, 1] < -0.97).all()
+    yaw = np.unwrap(np.arctan2(R[:, 1, 2], R[:, 0, 2]))
+    assert np.ptp(yaw) > math.radians(80), "the walk turns"
+
+
+def test_scene_axes_and_segment_labels():
+    for name in SCENE_NAMES:
+        scene = make_scene(name, 0)
+        assert np.allclose(scene.axes[0], [0, 0, 1])
+        assert np.allclose(np.linalg.norm(scene.axes, axis=1), 1)
+        assert np.allclose(scene.axes[1:, 2], 0), "the other axes are horizontal"
+        d = scene.segments[:, 1] - scene.segments[:, 0]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        cos = np.abs(d @ scene.axes.T)  # (S, A)
+        lab = scene.segment_axis
+        assert (cos[lab >= 0, lab[lab >= 0]] > math.cos(math.radians(0.01))).all()
+        assert (cos[lab < 0].max(axis=1) < math.cos(math.radians(5))).all()
+        assert (lab < 0).sum() >= 4, "a few non-structural segments"
+        assert set(lab[lab >= 0].tolist()) == set(range(len(scene.axes))), "every axis has segments"
+
+
+def test_atlanta_has_three_non_orthogonal_horizontal_axes():
+    scene = make_scene("atlanta", 0)
+    h = scene.axes[1:]
+    ang = np.degrees(np.arccos(np.clip(np.abs(h @ h.T), 0, 1)))
+    found = [
+        (i, j, k)
+        for i in range(len(h))
+        for j in range(i + 1, len(h))
+        for k in range(j + 1, len(h))
+        if all(10 < ang[p, q] < 80 for p, q in ((i, j), (i, k), (j, k)))
+    ]
+    assert found, f"no three pairwise non-orthogonal horizontal axes in {ang.round(1)}"
+
+
+def test_scenes_are_deterministic():
+    a, b = make_scene("corridor", 5), make_scene("corridor", 5)
+    assert np.array_equal(a.quad_corners, b.quad_corners) and np.array_equal(a.segments, b.segments)
+    assert [m.seed for m in a.materials] == [m.seed for m in b.materials]
+    c = make_scene("corridor", 6)
+    assert [m.seed for m in a.materials] != [m.seed for m in c.materials]
