@@ -1,1 +1,48 @@
-"""eval stage of papl-mapper."""
+"""eval stage of papl-mapper: trajectory (ATE, RPE, scale), line-map and axis metrics against ground truth."""
+
+from .axes import AxisMatch, GtAxes, line_angle_deg, match_axes, read_axes
+from .evaluate import (
+    EvalConfig,
+    EvalResult,
+    GroundTruth,
+    evaluate,
+    evaluate_path,
+    load_ground_truth,
+    resolve_gt_dir,
+    resolve_result,
+    trajectory_of_map,
+    write_json,
+)
+from .lines import Segments, line_metrics, nearest_segment_distance, point_segment_distance, read_segments
+from .trajectory import Sim3, Trajectory, associate, associate_trajectories, read_tum, rpe, umeyama, write_tum
+
+__all__ = [
+    "AxisMatch",
+    "EvalConfig",
+    "EvalResult",
+    "GroundTruth",
+    "GtAxes",
+    "Segments",
+    "Sim3",
+    "Trajectory",
+    "associate",
+    "associate_trajectories",
+    "evaluate",
+    "evaluate_path",
+    "line_angle_deg",
+    "line_metrics",
+    "load_ground_truth",
+    "match_axes",
+    "nearest_segment_distance",
+    "point_segment_distance",
+    "read_axes",
+    "read_segments",
+    "read_tum",
+    "resolve_gt_dir",
+    "resolve_result",
+    "rpe",
+    "trajectory_of_map",
+    "umeyama",
+    "write_json",
+    "write_tum",
+]
