@@ -243,3 +243,18 @@ def test_triangulate_points(rng):
     # one observation only, and no parallax, are rejected
     Xh, ok = g.triangulate_points(np.zeros(2, int), np.stack([np.eye(4)] * 2), K, uv[:2] * 0 + 300, 1)
     assert not ok.any()
+
+
+def test_anchor_from_observation_meets_the_line(rng):
+    T_wr = random_pose(rng)
+    ends_c = np.array([[-1.0, 0.2, 4.0], [1.0, 0.4, 5.0]])
+    ends = g.transform(T_wr, ends_c)
+    uv, _ = g.project_points(K, np.stack([T_wr, T_wr]), ends)
+    L = g.plucker_from_endpoints(*ends)
+    b, r, sin = g.anchor_from_observation(uv.ravel(), K, T_wr, L)
+    assert sin > 0.1 and r > 0
+    # the ray through the observed midpoint meets the line at depth 1/r; anchoring it reproduces the line
+    v = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+    np.testing.assert_allclose(g.line_distance(g.anchored_plucker(v, r, b, T_wr), L), 0, atol=1e-9)
+    # the observed midpoint is not the projection of the 3D midpoint (perspective), so z differs
+    assert abs(1 / r - ends_c[:, 2].mean()) > 1e-3

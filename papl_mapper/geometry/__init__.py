@@ -5,6 +5,7 @@ Knows nothing of gtsam; the backend feeds these functions' analytic Jacobians to
 
 from papl_mapper.geometry.lines import (
     anchor_from_endpoints,
+    anchor_from_observation,
     anchored_plucker,
     clip_to_observations,
     direction_from_latlon,
@@ -49,6 +50,7 @@ from papl_mapper.geometry.triangulation import (
 
 __all__ = [
     "anchor_from_endpoints",
+    "anchor_from_observation",
     "anchored_plucker",
     "clip_to_observations",
     "direction_from_latlon",

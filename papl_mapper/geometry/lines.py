@@ -7,10 +7,12 @@ can hand them to gtsam unchanged; each one is checked against finite differences
 
 Anchored representation (paper eq. "three-parameter"): a structural line is its principal axis direction
 v (unit, shared by every line of the axis) plus r, the inverse depth of the segment midpoint in the line's
-reference keyframe: P_c = b / r with b = (x, y, 1) the normalised bearing of that midpoint, so r = 1/z.
-What is stored in a Map: `ref_keyframe_id` and `inverse_depth` r; the bearing b is not stored but is
-re-derived from the midpoint of `endpoints_w` seen from the reference keyframe (`anchor_from_endpoints`),
-so r is always consistent with the endpoints. During one optimisation b is held constant.
+reference keyframe: P_c = b / r with b = K^-1 (u, v, 1) the bearing of the midpoint of the segment as
+OBSERVED in that keyframe, so r = 1/z. Taking the bearing from the observation (not from the 3D
+endpoints) matters: the observed midpoint lies on the image of the true line, so its ray meets the
+true line and the three parameters can reach it; a bearing through a noisy 3D midpoint generally misses
+it. What a Map stores: `ref_keyframe_id` and `inverse_depth` r; b is re-derived from the line's
+observation in the reference keyframe (`anchor_from_observation`). During one optimisation b is constant.
 """
 
 from __future__ import annotations
@@ -249,6 +251,30 @@ def anchor_from_endpoints(endpoints_w: np.ndarray, T_wr: np.ndarray) -> tuple[np
         b = mid_c / z[..., None]
         r = 1.0 / z
     return b, r
+
+
+def anchor_from_observation(
+    obs_xy: np.ndarray, K: np.ndarray, T_wr: np.ndarray, L_w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bearing b = K^-1 (midpoint of the observed segment, 1) (..., 3) in the reference camera, the inverse
+    depth r (...,) of the ray's point closest to the 3D line L_w, and the sine of the ray-line angle
+    (near 0: the line runs along the ray and r is undefined; r <= 0: the line is met behind the camera)."""
+    mid = (obs_xy[..., :2] + obs_xy[..., 2:]) / 2.0
+    hom = np.concatenate([mid, np.ones(mid.shape[:-1] + (1,))], -1)
+    b = hom @ np.linalg.inv(K).T
+    P0, d = line_point_dir(L_w)
+    bw = np.einsum("...ij,...j->...i", T_wr[..., :3, :3], b)
+    w0 = T_wr[..., :3, 3] - P0
+    a = np.sum(bw * bw, -1)
+    bb = np.sum(bw * d, -1)
+    dd = np.sum(bw * w0, -1)
+    e = np.sum(d * w0, -1)
+    den = a - bb**2
+    sin = np.sqrt(np.maximum(den / a, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (bb * e - dd) / den
+        r = 1.0 / t
+    return b, r, sin
 
 
 def anchored_plucker(

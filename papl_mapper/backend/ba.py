@@ -1,0 +1,378 @@
+"""Global and local bundle adjustment of a Map in gtsam: poses, points, anchored / temporary-VP /
+orthonormal lines and principal axes in one factor graph, solved by Levenberg-Marquardt.
+
+Both functions return a BAResult whose `map` is an optimised deep copy: the input Map is never changed.
+Written back: keyframe poses, point positions, line endpoints (the optimised infinite line clipped to
+its observed extent), `ref_keyframe_id` and `inverse_depth` (1/z of the new segment midpoint in the
+reference keyframe) of anchored and temporary-VP lines, and axis directions.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from papl_mapper import geometry as geo
+from papl_mapper.backend.config import BAConfig
+from papl_mapper.backend.factors import (
+    AX,
+    D,
+    LineFactorBuilder,
+    LineTrackSpec,
+    P,
+    R,
+    U,
+    W,
+    X,
+    axis_prior_factor,
+    scale_prior_factor,
+)
+from papl_mapper.backend.problem import KIND_ANCHORED, KIND_ORTHO, KIND_TVP, LineGroup, Problem, build_problem
+from papl_mapper.errors import GeometryError, OptimizationError
+from papl_mapper.map import Map
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[int, int, float], None]
+"""progress(iteration, max_iterations, cost) after every Levenberg-Marquardt iteration."""
+
+
+@dataclass
+class BAResult:
+    """Outcome of one bundle adjustment. Costs are gtsam's (0.5 sum of robust whitened squares)."""
+
+    map: Map
+    initial_cost: float
+    final_cost: float
+    iterations: int
+    converged: bool
+    time_s: float
+    setup_s: float
+    linearize_s: float
+    """One linearisation of the whole graph at the solution (what each iteration pays once)."""
+    solve_s: float
+    """One sparse solve of that linear system (each iteration pays it once per damping trial)."""
+    initial_rms_px: dict[str, float]
+    final_rms_px: dict[str, float]
+    n_variables: dict[str, int]
+    n_observations: dict[str, int]
+    line_params: dict[str, int]
+    """Optimised line parameters: anchored n + 2 per optimised axis, temporary-VP 3n, orthonormal 4n."""
+    dropped: dict[str, int] = field(default_factory=dict)
+    cost_history: list[float] = field(default_factory=list)
+    iteration_s: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        """Plain-JSON statistics (everything except the map)."""
+        return {k: v for k, v in self.__dict__.items() if k != "map"}
+
+
+def global_ba(m: Map, config: BAConfig | None = None, progress: ProgressFn | None = None) -> BAResult:
+    """Adjust every keyframe, point, line and axis of `m`; the monocular gauge is fixed by holding the first
+    keyframe and the distance from it to the next keyframe that moved."""
+    config = config or BAConfig()
+    t0 = time.perf_counter()
+    problem = build_problem(m, config)
+    return _run(m, problem, config, progress, t0)
+
+
+def local_ba(
+    m: Map, keyframe_ids: np.ndarray, config: BAConfig | None = None, progress: ProgressFn | None = None
+) -> BAResult:
+    """Adjust the keyframes `keyframe_ids` and every point and line they see; other keyframes seeing
+    those landmarks enter as fixed poses (they also fix the gauge)."""
+    config = config or BAConfig()
+    t0 = time.perf_counter()
+    ids = np.asarray(keyframe_ids, dtype=np.int64)
+    known = np.isin(ids, m.keyframes.ids)
+    if not known.all():
+        raise GeometryError(f"local BA: unknown keyframe ids {ids[~known][:5].tolist()}")
+    rows = np.flatnonzero(np.isin(m.keyframes.ids, ids))
+    problem = build_problem(m, config, window=rows)
+    return _run(m, problem, config, progress, t0)
+
+
+# ---- graph -------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Graph:
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    pose_var: np.ndarray
+    builder: LineFactorBuilder
+
+
+def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
+    T = m.keyframes.T_wc
+    K = m.camera.K
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    pose_var = pb.kf_in & ~pb.kf_fixed
+    if pb.gauge is not None:
+        pose_var[pb.gauge[0]] = False
+    for i in np.flatnonzero(pb.kf_in):
+        values.insert(X(i), gtsam.Pose3(T[i]))
+    for i in np.flatnonzero(pb.kf_in & ~pose_var):
+        graph.add(gtsam.NonlinearEqualityPose3(X(i), gtsam.Pose3(T[i])))
+    if pb.gauge is not None and config.optimize_poses:
+        a, b = pb.gauge
+        dist = float(np.linalg.norm(T[b, :3, 3] - T[a, :3, 3]))
+        graph.add(scale_prior_factor(a, T[a], b, dist, config.scale_prior_sigma * dist))
+
+    # points: gtsam's own projection factors with a Huber loss
+    cal = gtsam.Cal3_S2(m.camera.fx, m.camera.fy, 0.0, m.camera.cx, m.camera.cy)
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k),
+        gtsam.noiseModel.Isotropic.Sigma(2, config.point_sigma_px),
+    )
+    xyz = m.points.xyz
+    for j, row in enumerate(pb.pt_rows):
+        values.insert(P(j), xyz[row])
+    for j, kf, uv in zip(pb.pt_obs_pt, pb.pt_obs_kf, pb.pt_obs_uv, strict=True):
+        graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, noise, X(kf), P(j), cal))
+
+    # axes
+    A = len(m.axes)
+    for a in range(A):
+        if pb.axis_var[a]:
+            values.insert(AX(a), gtsam.Unit3(m.axes.directions[a]))
+            graph.add(axis_prior_factor(a, m.axes.directions[a], np.radians(config.axis_prior_sigma_deg)))
+
+    builder = LineFactorBuilder(
+        K, T, pose_var, m.axes.directions, pb.axis_var, config.line_sigma_px, config.huber_k
+    )
+    for kind, grp in pb.lines.items():
+        for i in range(len(grp)):
+            if kind == KIND_ORTHO:
+                Urot, phi = geo.ortho_from_plucker(grp.L0[i])
+                values.insert(U(i), gtsam.Rot3(Urot))
+                values.insert(W(i), np.array([phi]))
+                spec_kw: dict[str, Any] = {}
+            else:
+                values.insert(R(kind, i), np.array([grp.inv_depth[i]]))
+                spec_kw = {"ref_kf": int(grp.ref_kf[i]), "bearing": grp.bearing[i]}
+                if kind == KIND_TVP:
+                    values.insert(D(i), gtsam.Unit3(grp.L0[i, 3:]))
+                else:
+                    axes = np.flatnonzero(grp.weights[i] > 0)
+                    spec_kw.update(axes=axes, sqrt_w=np.sqrt(grp.weights[i, axes]))
+            s, e = grp.obs_start[i], grp.obs_start[i + 1]
+            chunks = [(s, e)] if config.line_factor == "track" else [(o, o + 1) for o in range(s, e)]
+            for a0, a1 in chunks:
+                spec = LineTrackSpec(kind, i, grp.obs_kf[a0:a1], grp.obs_xy[a0:a1], **spec_kw)
+                graph.add(builder.make(spec))
+    return _Graph(graph, values, pose_var, builder)
+
+
+# ---- state in numpy --------------------------------------------------------------------------
+
+
+@dataclass
+class _State:
+    T: np.ndarray
+    xyz: np.ndarray  # (P', 3)
+    axes: np.ndarray  # (A, 3)
+    lines: dict[str, np.ndarray]  # kind -> (n, 6) world Pluecker of the line's main axis
+    inv_depth: dict[str, np.ndarray]  # kind -> (n,) inverse depths (anchored and temporary-VP)
+
+
+def _state(m: Map, pb: Problem, values: gtsam.Values) -> _State:
+    T = m.keyframes.T_wc.copy()
+    for i in np.flatnonzero(pb.kf_in):
+        T[i] = values.atPose3(X(i)).matrix()
+    xyz = np.array([values.atPoint3(P(j)) for j in range(len(pb.pt_rows))]).reshape(-1, 3)
+    axes = m.axes.directions.copy()
+    for a in np.flatnonzero(pb.axis_var):
+        v = values.atUnit3(AX(a)).point3()
+        axes[a] = v if v @ m.axes.directions[a] >= 0 else -v
+    lines, inv = {}, {}
+    for kind, grp in pb.lines.items():
+        n = len(grp)
+        if kind == KIND_ORTHO:
+            L = [
+                geo.plucker_from_ortho(values.atRot3(U(i)).matrix(), np.asarray(values.atVector(W(i))[0]))
+                for i in range(n)
+            ]
+        else:
+            r = np.array([values.atVector(R(kind, i))[0] for i in range(n)])
+            inv[kind] = r
+            if kind == KIND_TVP:
+                v = np.array([values.atUnit3(D(i)).point3() for i in range(n)]).reshape(-1, 3)
+            else:
+                v = axes[np.argmax(grp.weights, axis=1)] if n else np.zeros((0, 3))
+            L = geo.anchored_plucker(v, r, grp.bearing, T[grp.ref_kf]) if n else []
+        lines[kind] = geo.normalize_plucker(np.asarray(L).reshape(-1, 6)) if n else np.zeros((0, 6))
+    return _State(T, xyz, axes, lines, inv)
+
+
+def _rms(m: Map, pb: Problem, st: _State) -> dict[str, float]:
+    out = {}
+    if len(pb.pt_obs_pt):
+        uv, _ = geo.project_points(m.camera.K, st.T[pb.pt_obs_kf], st.xyz[pb.pt_obs_pt])
+        out["points_px"] = float(np.sqrt(np.mean(np.sum((uv - pb.pt_obs_uv) ** 2, axis=1))))
+    errs = []
+    for kind, grp in pb.lines.items():
+        if len(grp.obs_kf):
+            owner = np.repeat(np.arange(len(grp)), np.diff(grp.obs_start))
+            Lc = geo.plucker_to_camera(st.lines[kind][owner], st.T[grp.obs_kf])
+            e = geo.endpoint_errors(m.camera.K, Lc, grp.obs_xy)
+            out[f"lines_{kind}_px"] = float(np.sqrt(np.mean(e**2)))
+            errs.append(e.ravel())
+    if errs:
+        out["lines_px"] = float(np.sqrt(np.mean(np.concatenate(errs) ** 2)))
+    return out
+
+
+# ---- run -----------------------------------------------------------------------------------------
+
+
+def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0: float) -> BAResult:
+    g = _build_graph(m, pb, config)
+    setup_s = time.perf_counter() - t0
+    init_state = _state(m, pb, g.values)
+    initial_rms = _rms(m, pb, init_state)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(config.max_iterations)
+    params.setRelativeErrorTol(config.relative_error_tol)
+    params.setAbsoluteErrorTol(config.absolute_error_tol)
+    params.setlambdaInitial(config.lambda_initial)
+    t_opt = time.perf_counter()
+    optimizer = gtsam.LevenbergMarquardtOptimizer(g.graph, g.values, params)
+    initial_cost = float(g.graph.error(g.values))
+    if not np.isfinite(initial_cost):
+        raise OptimizationError("BA: the initial cost is not finite; check the map for degenerate geometry")
+    history = [initial_cost]
+    iteration_s = []
+    converged = False
+    cost = initial_cost
+    for it in range(config.max_iterations):
+        ti = time.perf_counter()
+        try:
+            optimizer.iterate()
+        except RuntimeError as exc:
+            raise OptimizationError(f"BA: gtsam failed in iteration {it + 1}: {exc}") from exc
+        iteration_s.append(time.perf_counter() - ti)
+        new = float(optimizer.error())
+        if not np.isfinite(new):
+            raise OptimizationError(f"BA: the cost became {new} in iteration {it + 1}")
+        history.append(new)
+        if progress is not None:
+            progress(it + 1, config.max_iterations, new)
+        decrease = cost - new
+        cost = new
+        if decrease <= config.absolute_error_tol or decrease <= config.relative_error_tol * max(
+            history[-2], 1e-300
+        ):
+            converged = True
+            break
+        if optimizer.lambda_() >= params.getlambdaUpperBound():
+            break
+    time_s = time.perf_counter() - t0
+    values = optimizer.values()
+    # linearisation vs solve split, measured once at the solution
+    tl = time.perf_counter()
+    lin = g.graph.linearize(values)
+    linearize_s = time.perf_counter() - tl
+    ts = time.perf_counter()
+    lin.optimize()
+    solve_s = time.perf_counter() - ts
+    st = _state(m, pb, values)
+    final_rms = _rms(m, pb, st)
+    out = _write_back(m, pb, st)
+    _check_finite(out, pb)
+    n_lines = {k: len(v) for k, v in pb.lines.items()}
+    n_axes_var = int(pb.axis_var.sum())
+    result = BAResult(
+        map=out,
+        initial_cost=initial_cost,
+        final_cost=cost,
+        iterations=len(iteration_s),
+        converged=converged,
+        time_s=time_s,
+        setup_s=setup_s,
+        linearize_s=linearize_s,
+        solve_s=solve_s,
+        initial_rms_px=initial_rms,
+        final_rms_px=final_rms,
+        n_variables={
+            "poses": int(g.pose_var.sum()),
+            "points": len(pb.pt_rows),
+            "axes": n_axes_var,
+            **{f"lines_{k}": v for k, v in n_lines.items()},
+        },
+        n_observations={
+            "points": len(pb.pt_obs_pt),
+            **{f"lines_{k}": len(v.obs_kf) for k, v in pb.lines.items()},
+        },
+        line_params={
+            KIND_ANCHORED: n_lines[KIND_ANCHORED] + 2 * n_axes_var,
+            KIND_TVP: 3 * n_lines[KIND_TVP],
+            KIND_ORTHO: 4 * n_lines[KIND_ORTHO],
+        },
+        dropped=dict(pb.dropped),
+        cost_history=history,
+        iteration_s=iteration_s,
+    )
+    out.metadata.setdefault("timings", {})["ba_s"] = time_s
+    log.info(
+        "BA: cost %.6g -> %.6g in %d iterations (%.2f s); rms %s",
+        initial_cost,
+        cost,
+        result.iterations,
+        time_s,
+        {k: round(v, 3) for k, v in final_rms.items()},
+    )
+    _ = time.perf_counter() - t_opt
+    return result
+
+
+def _write_back(m: Map, pb: Problem, st: _State) -> Map:
+    out = copy.deepcopy(m)
+    K = m.camera.K
+    out.keyframes.T_wc[pb.kf_in] = st.T[pb.kf_in]
+    out.points.xyz[pb.pt_rows] = st.xyz
+    out.axes.directions[:] = st.axes
+    for kind, grp in pb.lines.items():
+        if not len(grp):
+            continue
+        L = st.lines[kind]
+        owner = np.repeat(np.arange(len(grp)), np.diff(grp.obs_start))
+        ends, ok = geo.clip_to_observations(L, owner, st.T[grp.obs_kf], K, grp.obs_xy, len(grp))
+        if not ok.all():  # keep the old extent, projected onto the new line
+            P0, d = geo.line_point_dir(L[~ok])
+            old = m.lines.endpoints_w[grp.rows[~ok]]
+            s = np.einsum("nkj,nj->nk", old - P0[:, None], d)
+            ends[~ok] = P0[:, None] + s[..., None] * d[:, None]
+        out.lines.endpoints_w[grp.rows] = ends
+        if kind != KIND_ORTHO:
+            out.lines.ref_keyframe_id[grp.rows] = m.keyframes.ids[grp.ref_kf]
+            out.lines.inverse_depth[grp.rows] = st.inv_depth[kind]
+    return out
+
+
+def _check_finite(out: Map, pb: Problem) -> None:
+    bad = []
+    if not np.isfinite(out.keyframes.T_wc).all():
+        bad.append("keyframe poses")
+    if not np.isfinite(out.points.xyz).all():
+        bad.append("points")
+    if not np.isfinite(out.lines.endpoints_w).all():
+        bad.append("line endpoints")
+    if not np.isfinite(out.axes.directions).all():
+        bad.append("axes")
+    for grp in pb.lines.values():
+        if grp is not pb.lines[KIND_ORTHO] and not np.isfinite(out.lines.inverse_depth[grp.rows]).all():
+            bad.append("inverse depths")
+    if bad:
+        raise OptimizationError(f"BA produced non-finite {', '.join(bad)}; the input geometry is degenerate")
+
+
+__all__ = ["BAConfig", "BAResult", "LineGroup", "global_ba", "local_ba"]

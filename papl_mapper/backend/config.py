@@ -1,0 +1,46 @@
+"""Typed configuration of the bundle adjustment (global and local)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass
+class BAConfig:
+    """Bundle adjustment settings; defaults suit pixel observations of a 640x480 camera."""
+
+    max_iterations: int = 30
+    """Levenberg-Marquardt iterations at most."""
+    relative_error_tol: float = 1e-5
+    """Stop when the cost decreases by less than this fraction in one iteration."""
+    absolute_error_tol: float = 1e-9
+    """Stop when the cost decreases by less than this in one iteration."""
+    lambda_initial: float = 1e-4
+    """Initial Levenberg-Marquardt damping."""
+    point_sigma_px: float = 1.0
+    """Standard deviation of point observations, pixels."""
+    line_sigma_px: float = 1.0
+    """Standard deviation of the endpoint-to-line distances, pixels."""
+    huber_k: float = 1.345
+    """Huber threshold in standard deviations (applied per observation, to its whitened 2-vector)."""
+    axis_prior_sigma_deg: float = 2.0
+    """The paper's axis error e_a: how far (1 sigma) an axis may move from its value before BA."""
+    min_axis_weight: float = 0.1
+    """Soft associations w_kj below this are left out of the graph."""
+    min_lines_per_axis: int = 2
+    """An axis anchoring fewer lines is held fixed (its direction is not observable enough)."""
+    min_views: int = 2
+    """Points and lines seen from fewer distinct keyframes are left out (kept unchanged)."""
+    min_segment_px: float = 2.0
+    """Line observations shorter than this are dropped (zero-length segments have no direction)."""
+    min_ray_angle_deg: float = 1.0
+    """Line observations whose 3D line is within this angle of the viewing ray are dropped."""
+    line_factor: Literal["track", "observation"] = "track"
+    """One custom factor per line track (vectorised) or one per observation (more Python calls)."""
+    optimize_poses: bool = True
+    """False holds every keyframe pose at its value (e.g. the fixed-pose experiment)."""
+    optimize_axes: bool = True
+    """False holds the principal axes at their values."""
+    scale_prior_sigma: float = 1e-4
+    """Monocular gauge: relative sigma of the prior holding the distance between the two gauge keyframes."""

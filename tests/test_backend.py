@@ -1,0 +1,274 @@
+"""Backend: factor Jacobians, convergence of global and local BA on synthetic problems, degenerate input."""
+
+from __future__ import annotations
+
+import copy
+import logging
+
+import numpy as np
+import pytest
+
+gtsam = pytest.importorskip("gtsam")
+
+from papl_mapper import geometry as geo  # noqa: E402
+from papl_mapper.backend import BAConfig, global_ba, local_ba  # noqa: E402
+from papl_mapper.backend.ba import _build_graph  # noqa: E402
+from papl_mapper.backend.factors import _dim  # noqa: E402
+from papl_mapper.backend.problem import build_problem  # noqa: E402
+from papl_mapper.backend.synthetic import SceneSpec, errors, make_scene, perturb  # noqa: E402
+from papl_mapper.errors import GeometryError, MapFormatError  # noqa: E402
+from papl_mapper.map import LineState  # noqa: E402
+
+# named tolerances
+JAC_TOL = 1e-5  # relative, analytic vs central differences of the custom factors
+NOISE_FREE = {"ate_rmse": 1e-3, "line_angle_deg": 0.2, "axis_angle_deg": 0.05, "point_rmse": 2e-2}
+NOISY = {"ate_rmse": 2e-2, "line_angle_deg": 1.0, "axis_angle_deg": 1.0, "point_rmse": 0.15}
+OUTLIER_AXIS_DEG = 1.0  # Huber is not redescending: 5% outliers leave a small bias
+LOOSE_AXIS_PRIOR = 30.0  # degrees: the axis prior barely pulls, so the known answer is the optimum
+
+START = {
+    "rot_deg": 0.5,
+    "trans": 0.03,
+    "point_sigma": 0.05,
+    "line_sigma": 0.05,
+    "line_angle_deg": 2.0,
+    "axis_deg": 1.0,
+}
+
+
+@pytest.fixture(scope="module")
+def truth():
+    return make_scene(SceneSpec(n_keyframes=8, n_points=60, lines_per_axis=(6, 6, 6), n_free_lines=3, seed=3))
+
+
+def _cfg(**kw) -> BAConfig:
+    return BAConfig(axis_prior_sigma_deg=LOOSE_AXIS_PRIOR, **kw)
+
+
+def _assert_within(err: dict, tol: dict) -> None:
+    for k, v in tol.items():
+        assert err[k] < v, f"{k} = {err[k]:.4g} exceeds {v}"
+
+
+def test_custom_factor_jacobians(truth):
+    """Every custom factor (anchored with two soft axes, temporary-VP, orthonormal, axis and scale priors),
+    in the Huber region too, against central differences in gtsam's own retractions."""
+    m = perturb(truth, **START)
+    m.lines.state[:2] = LineState.TEMPORARY_VP
+    anchored = np.flatnonzero(m.lines.state == LineState.ANCHORED)
+    w = m.lines.axis_weights
+    a0 = int(np.argmax(w[anchored[0]]))
+    w[anchored[0]] = 0.0
+    w[anchored[0], a0], w[anchored[0], (a0 + 1) % 3] = 0.7, 0.3
+    m.lines.obs_xy[:5] += 8.0  # large residuals: Huber active
+    cfg = BAConfig(huber_k=1e9)  # Huber linearises as IRLS (checked below), not as this derivative
+    pb = build_problem(m, cfg)
+    g = _build_graph(m, pb, cfg)
+    vals = g.values
+    eps = 1e-6
+    checked = 0
+    for fi in range(g.graph.size()):
+        f = g.graph.at(fi)
+        if not isinstance(f, gtsam.CustomFactor):
+            continue
+        keys = list(f.keys())
+        A, _ = f.linearize(vals).jacobian()
+        cols = []
+        for k in keys:
+            for j in range(_dim(k)):
+                steps = []
+                for sgn in (1, -1):
+                    dv = gtsam.VectorValues()
+                    for kk in keys:
+                        vec = np.zeros(_dim(kk))
+                        if kk == k:
+                            vec[j] = sgn * eps
+                        dv.insert(kk, vec)
+                    steps.append(f.unwhitenedError(vals.retract(dv)))
+                cols.append((steps[0] - steps[1]) / (2 * eps))
+        num = np.stack(cols, 1)
+        np.testing.assert_allclose(A, num, atol=JAC_TOL * max(np.abs(num).max(), 1.0), rtol=0)
+        checked += 1
+    assert checked > 20
+
+
+def test_huber_cost_and_irls_weight():
+    from papl_mapper.backend.factors import huber_cost_residual, huber_sqrt_weight
+
+    k = 1.345
+    e = np.array([[0.3, 0.4], [3.0, 4.0]])
+    cost = 0.5 * np.sum(huber_cost_residual(e, k) ** 2, axis=1)
+    np.testing.assert_allclose(cost, [0.5 * 0.25, k * 5.0 - k * k / 2])
+    np.testing.assert_allclose(huber_sqrt_weight(e, k)[:, 0], [1.0, np.sqrt(k / 5.0)])
+
+
+def test_global_ba_converges_noise_free(truth):
+    start = perturb(truth, **START)
+    before = errors(start, truth)
+    calls = []
+    res = global_ba(start, _cfg(), progress=lambda i, n, c: calls.append((i, c)))
+    after = errors(res.map, truth)
+    _assert_within(after, NOISE_FREE)
+    assert after["line_error"] < 0.2 * before["line_error"]
+    assert res.converged and res.final_cost < 1e-3 * res.initial_cost
+    assert len(calls) == res.iterations and calls[-1][1] == pytest.approx(res.final_cost)
+    assert res.final_rms_px["lines_px"] < 0.05 and res.final_rms_px["points_px"] < 0.05
+    assert res.line_params["anchored"] == res.n_variables["lines_anchored"] + 2 * 3
+    # gauge: first pose untouched, scale held by the distance to the gauge keyframe
+    np.testing.assert_array_equal(res.map.keyframes.T_wc[0], start.keyframes.T_wc[0])
+    d0 = np.linalg.norm(start.keyframes.T_wc[1, :3, 3] - start.keyframes.T_wc[0, :3, 3])
+    d1 = np.linalg.norm(res.map.keyframes.T_wc[1, :3, 3] - res.map.keyframes.T_wc[0, :3, 3])
+    assert d1 == pytest.approx(d0, rel=1e-3)
+    # the input map is not modified; the output is a valid map with consistent anchors
+    np.testing.assert_array_equal(start.lines.endpoints_w, perturb(truth, **START).lines.endpoints_w)
+    res.map.validate()
+    anch = res.map.lines.state == LineState.ANCHORED
+    assert np.all(res.map.lines.inverse_depth[anch] > 0)
+
+
+def test_global_ba_with_observation_noise():
+    noisy = make_scene(
+        SceneSpec(n_keyframes=8, n_points=60, lines_per_axis=(6, 6, 6), obs_noise_px=0.5, seed=4)
+    )
+    res = global_ba(perturb(noisy, **START), _cfg())
+    _assert_within(errors(res.map, noisy), NOISY)
+    assert 0.2 < res.final_rms_px["points_px"] < 1.0  # about the noise, not below it by overfitting much
+
+
+@pytest.mark.parametrize("which", ["points", "lines"])
+def test_global_ba_robust_to_outliers(truth, which):
+    """5% gross outliers (20-40 px): Huber keeps the map close, plain least squares does not."""
+    m = perturb(truth, **START)
+    rng = np.random.default_rng(5)
+    obs = m.points.obs_uv if which == "points" else m.lines.obs_xy
+    bad = rng.choice(len(obs), len(obs) // 20, replace=False)
+    obs[bad] += rng.uniform(20, 40, (len(bad), obs.shape[1]))
+    huber = errors(global_ba(m, _cfg()).map, truth)
+    plain = errors(global_ba(m, _cfg(huber_k=1e6)).map, truth)
+    assert huber["ate_rmse"] < 0.25 * plain["ate_rmse"]
+    assert huber["line_error"] < 0.5 * plain["line_error"]
+    assert huber["axis_angle_deg"] < OUTLIER_AXIS_DEG
+
+
+def test_track_and_observation_factors_agree(truth):
+    start = perturb(truth, **START)
+    a = global_ba(start, _cfg(max_iterations=4))
+    b = global_ba(start, _cfg(max_iterations=4, line_factor="observation"))
+    assert a.final_cost == pytest.approx(b.final_cost, rel=1e-6)
+    np.testing.assert_allclose(a.map.lines.endpoints_w, b.map.lines.endpoints_w, atol=1e-6)
+
+
+def test_temporary_vp_and_orthonormal_lines_converge(truth):
+    m = perturb(truth, **START)
+    m.lines.state[:] = np.where(np.arange(len(m.lines)) % 2, LineState.TEMPORARY_VP, LineState.ORTHONORMAL)
+    res = global_ba(m, _cfg())
+    assert res.n_variables["lines_temporary_vp"] > 5 and res.n_variables["lines_orthonormal"] > 5
+    assert res.line_params["temporary_vp"] == 3 * res.n_variables["lines_temporary_vp"]
+    assert res.line_params["orthonormal"] == 4 * res.n_variables["lines_orthonormal"]
+    err = errors(res.map, truth)
+    assert err["ate_rmse"] < NOISE_FREE["ate_rmse"] and err["line_angle_deg"] < 0.5
+
+
+def test_fixed_poses_optimise_structure_only(truth):
+    m = perturb(truth, point_sigma=0.05, line_sigma=0.05, line_angle_deg=2.0, axis_deg=1.0)
+    res = global_ba(m, _cfg(optimize_poses=False))
+    np.testing.assert_array_equal(res.map.keyframes.T_wc, m.keyframes.T_wc)
+    assert res.n_variables["poses"] == 0
+    _assert_within(errors(res.map, truth, align=False), NOISE_FREE)
+
+
+def test_local_ba_moves_only_the_window(truth):
+    m = perturb(truth, **START)
+    window = truth.keyframes.ids[3:6]
+    res = local_ba(m, window, _cfg())
+    moved = np.abs(res.map.keyframes.T_wc - m.keyframes.T_wc).max(axis=(1, 2)) > 0
+    assert set(np.flatnonzero(moved)) <= {3, 4, 5} and moved[3:6].any()
+    # the window's poses get closer to the truth: outside poses are exact up to the perturbation
+    err_before = np.linalg.norm(m.keyframes.T_wc[3:6, :3, 3] - truth.keyframes.T_wc[3:6, :3, 3], axis=1)
+    err_after = np.linalg.norm(res.map.keyframes.T_wc[3:6, :3, 3] - truth.keyframes.T_wc[3:6, :3, 3], axis=1)
+    assert err_after.mean() < err_before.mean()
+    with pytest.raises(GeometryError, match="unknown keyframe"):
+        local_ba(m, [999], _cfg())
+
+
+# ---- degenerate input ----------------------------------------------------------------------------
+
+
+def test_nan_in_map_is_refused(truth):
+    m = copy.deepcopy(truth)
+    m.points.xyz[3, 1] = np.nan
+    with pytest.raises(MapFormatError, match="points.xyz"):
+        global_ba(m, _cfg())
+
+
+def test_degenerate_observations_and_lines_are_dropped_with_reason(truth, caplog):
+    m = perturb(truth, **START)
+    # a zero-length observed segment
+    m.lines.obs_xy[0, 2:] = m.lines.obs_xy[0, :2]
+    # a keyframe that sees nothing
+    lonely_kf = m.keyframes.ids[-1]
+    m.points.obs_ids, m.points.obs_uv = (
+        m.points.obs_ids[m.points.obs_ids[:, 1] != lonely_kf],
+        m.points.obs_uv[m.points.obs_ids[:, 1] != lonely_kf],
+    )
+    keep = m.lines.obs_ids[:, 1] != lonely_kf
+    m.lines.obs_ids, m.lines.obs_xy = m.lines.obs_ids[keep], m.lines.obs_xy[keep]
+    # a line seen once
+    lid = m.lines.ids[5]
+    first = np.flatnonzero(m.lines.obs_ids[:, 0] == lid)
+    keep = np.ones(len(m.lines.obs_ids), bool)
+    keep[first[1:]] = False
+    m.lines.obs_ids, m.lines.obs_xy = m.lines.obs_ids[keep], m.lines.obs_xy[keep]
+    # a line along the viewing ray of keyframe 0 (passes through its camera centre)
+    c0 = m.keyframes.T_wc[0, :3, 3]
+    ray = m.keyframes.T_wc[0, :3, :3] @ np.array([0.0, 0.0, 1.0])
+    m.lines.endpoints_w[7] = np.stack([c0 + 4 * ray, c0 + 6 * ray])
+    m.lines.state[7] = LineState.ORTHONORMAL
+    m.lines.axis_weights[7] = 0.0
+    m.lines.ref_keyframe_id[7] = -1
+    m.lines.inverse_depth[7] = np.nan
+    m.lines.obs_ids = np.concatenate([m.lines.obs_ids, [[m.lines.ids[7], m.keyframes.ids[0]]]])
+    m.lines.obs_xy = np.concatenate([m.lines.obs_xy, [[319.5, 239.5, 320.5, 240.5]]])
+    with caplog.at_level(logging.INFO, logger="papl_mapper.backend"):
+        res = global_ba(m, _cfg())
+    d = res.dropped
+    assert d["line_observations_short"] >= 1
+    assert d["keyframes"] == 1 and d["lines"] >= 1
+    assert d["line_observations_along_ray"] >= 1
+    np.testing.assert_array_equal(res.map.keyframes.T_wc[-1], m.keyframes.T_wc[-1])
+    assert "seen from fewer than 2 keyframes" in caplog.text and "viewing ray" in caplog.text
+    assert np.isfinite(res.map.lines.endpoints_w).all()
+
+
+def test_axis_with_one_line_is_held_fixed(truth):
+    m = perturb(truth, **START)
+    on_axis2 = np.flatnonzero(m.lines.axis_weights[:, 2] > 0)
+    m.lines.state[on_axis2[1:]] = LineState.ORTHONORMAL
+    m.lines.axis_weights[on_axis2[1:]] = 0.0
+    m.lines.ref_keyframe_id[on_axis2[1:]] = -1
+    m.lines.inverse_depth[on_axis2[1:]] = np.nan
+    res = global_ba(m, _cfg())
+    assert res.dropped["axes_held_fixed"] == 1
+    np.testing.assert_array_equal(res.map.axes.directions[2], m.axes.directions[2])
+    assert res.n_variables["axes"] == 2
+
+
+def test_static_camera_cannot_fix_scale(truth):
+    m = copy.deepcopy(truth)
+    m.keyframes.T_wc[:, :3, 3] = 0.0
+    with pytest.raises(GeometryError, match="scale"):
+        global_ba(m, _cfg())
+
+
+def test_inverse_depth_written_back_matches_reference_observation(truth):
+    res = global_ba(perturb(truth, **START), _cfg())
+    m = res.map
+    anch = np.flatnonzero(m.lines.state == LineState.ANCHORED)
+    assert np.all(m.lines.ref_keyframe_id[anch] >= 0)
+    for row in anch[:8]:
+        kf = m.lines.ref_keyframe_id[row]
+        o = np.flatnonzero((m.lines.obs_ids[:, 0] == m.lines.ids[row]) & (m.lines.obs_ids[:, 1] == kf))[0]
+        T_ref = m.keyframes.T_wc[np.searchsorted(m.keyframes.ids, kf)]
+        L = geo.plucker_from_endpoints(*m.lines.endpoints_w[row])
+        _, r, _ = geo.anchor_from_observation(m.lines.obs_xy[o], m.camera.K, T_ref, L)
+        assert r == pytest.approx(m.lines.inverse_depth[row], rel=1e-6)
