@@ -8,6 +8,7 @@ z forward, like an upright OpenCV camera at the identity pose.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -99,31 +100,32 @@ def look_pose(position: np.ndarray, yaw_deg: float = 0.0, pitch_deg: float = 0.0
 def render(room: Room, camera: Camera, T_wc: np.ndarray) -> np.ndarray:
     """Gray image (H, W) uint8 of the room by ray casting every pixel (bilinear texture lookup)."""
     w, h = camera.width, camera.height
-    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     rays_c = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy, np.ones_like(uu)], -1)
     R, c = T_wc[:3, :3], T_wc[:3, 3]
-    rays = rays_c @ R.T  # world directions (H, W, 3)
-    best = np.full((h, w), np.inf)
-    out = np.zeros((h, w), np.float32)
-    for f in room.faces:
+    # one product for every face: ray . (n, u, v) with the ray in world coordinates, r_w = R r_c
+    basis = np.concatenate([np.stack([np.cross(f.u, f.v), f.u, f.v], 1) for f in room.faces], 1)  # (3, 3F)
+    dots = rays_c.reshape(-1, 3) @ (R.T @ basis).astype(np.float32)  # (HW, 3F)
+    best = np.full(h * w, np.inf, np.float32)
+    out = np.zeros(h * w, np.float32)
+    for k, f in enumerate(room.faces):
         n = np.cross(f.u, f.v)
-        denom = rays @ n
+        rn, ru, rv = dots[:, 3 * k], dots[:, 3 * k + 1], dots[:, 3 * k + 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            lam = ((f.origin - c) @ n) / denom
-        pts = c + rays * lam[..., None]
-        rel = pts - f.origin
-        s = rel @ f.u / (f.u @ f.u)
-        t = rel @ f.v / (f.v @ f.v)
+            lam = np.float32((f.origin - c) @ n) / rn
+        co = c - f.origin
+        s = (np.float32(co @ f.u) + lam * ru) / np.float32(f.u @ f.u)
+        t = (np.float32(co @ f.v) + lam * rv) / np.float32(f.v @ f.v)
         ok = (lam > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (lam < best)
         if not ok.any():
             continue
         th, tw = f.texture.shape
-        mx = (s * tw - 0.5).astype(np.float32)
-        my = (t * th - 0.5).astype(np.float32)
-        val = cv2.remap(f.texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        mx = np.where(ok, s * tw - 0.5, -1).astype(np.float32).reshape(h, w)
+        my = np.where(ok, t * th - 0.5, -1).astype(np.float32).reshape(h, w)
+        val = cv2.remap(f.texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
         out[ok] = val[ok]
         best[ok] = lam[ok]
-    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    return np.clip(out + 0.5, 0, 255).astype(np.uint8).reshape(h, w)
 
 
 def project_segments(room: Room, camera: Camera, T_wc: np.ndarray, min_length_px: float = 20.0):
@@ -175,6 +177,24 @@ def default_camera(width: int = 640, height: int = 480, hfov_deg: float = 70.0) 
     return Camera(width, height, f, f, (width - 1) / 2, (height - 1) / 2, np.zeros(5))
 
 
+@functools.lru_cache(maxsize=4)
+def rendered_walk(n: int = 30, seed: int = 0, noise_sigma: float = 2.0):
+    """n noisy gray frames of the walk through room `seed`, the camera, poses and projected GT.
+
+    Cached for the test session (several test modules use the same frames); do not modify.
+    """
+    room = make_room(seed)
+    cam = default_camera()
+    poses = walk_poses(n)
+    frames = []
+    for k, T in enumerate(poses):
+        img = render(room, cam, T).astype(np.float64)
+        img += np.random.default_rng(k).normal(0, noise_sigma, img.shape)
+        frames.append(np.clip(img, 0, 255).astype(np.uint8))
+    gts = [project_segments(room, cam, T, min_length_px=25.0) for T in poses]
+    return tuple(frames), cam, tuple(poses), tuple(gts)
+
+
 def walk_poses(n: int, speed_m: float = 0.03, yaw_rate_deg: float = 0.3) -> list[np.ndarray]:
     """A forward walk with a slow turn and a slight pitch, n poses."""
     return [
@@ -188,24 +208,22 @@ def segment_match(det: np.ndarray, gt: np.ndarray, dist_px: float = 3.0, angle_d
     out = np.full(len(det), -1, np.int64)
     if len(gt) == 0 or len(det) == 0:
         return out
-    for i, (x1, y1, x2, y2) in enumerate(det):
-        best, best_d = -1, np.inf
-        for g, (a1, b1, a2, b2) in enumerate(gt):
-            dg = np.array([a2 - a1, b2 - b1])
-            L = np.linalg.norm(dg)
-            ug = dg / L
-            dd = np.array([x2 - x1, y2 - y1])
-            cos = abs(ug @ dd) / max(np.linalg.norm(dd), 1e-9)
-            if cos < np.cos(np.radians(angle_deg)):
-                continue
-            dmax = 0.0
-            for p in ((x1, y1), (x2, y2)):
-                r = np.array(p) - (a1, b1)
-                t = np.clip(r @ ug, 0, L)
-                dmax = max(dmax, np.linalg.norm(r - t * ug))
-            if dmax <= dist_px and dmax < best_d:
-                best, best_d = g, dmax
-        out[i] = best
+    a, b = gt[:, :2], gt[:, 2:]
+    L = np.linalg.norm(b - a, axis=1)
+    ug = (b - a) / L[:, None]  # (G, 2)
+    dd = det[:, 2:] - det[:, :2]
+    ud = dd / np.maximum(np.linalg.norm(dd, axis=1), 1e-9)[:, None]
+    cos = np.abs(ud @ ug.T)  # (D, G)
+    dmax = np.zeros((len(det), len(gt)))
+    for p in (det[:, :2], det[:, 2:]):
+        r = p[:, None, :] - a[None]  # (D, G, 2)
+        t = np.clip(np.einsum("dgk,gk->dg", r, ug), 0, L[None])
+        dmax = np.maximum(dmax, np.linalg.norm(r - t[..., None] * ug[None], axis=2))
+    ok = (cos >= np.cos(np.radians(angle_deg))) & (dmax <= dist_px)
+    dmax = np.where(ok, dmax, np.inf)
+    best = np.argmin(dmax, axis=1)
+    has = np.isfinite(dmax[np.arange(len(det)), best])
+    out[has] = best[has]
     return out
 
 
