@@ -297,7 +297,7 @@ class Map:
                 if len(arr) != n:
                     raise MapFormatError(f"{group}.{f} has {len(arr)} rows, {group}.ids has {n}")
             ids = _get(self, f"{group}.ids")
-            if len(np.unique(ids)) != n:
+            if not _all_unique(ids):
                 raise MapFormatError(f"{group}.ids are not unique")
         n_axes = len(self.axes.directions)
         if self.lines.axis_weights.shape[1] != n_axes:
@@ -436,6 +436,14 @@ def _get(m: Map, name: str) -> Any:
 
 def _arrays(m: Map) -> dict[str, np.ndarray]:
     return {name: _get(m, name) for name in _ARRAY_SPECS}
+
+
+def _all_unique(ids: np.ndarray) -> bool:
+    """True when no id repeats. Sorted ids take one O(n) pass; others a sort (np.unique hashes, slower)."""
+    if len(ids) < 2 or bool(np.all(ids[1:] > ids[:-1])):
+        return True
+    s = np.sort(ids)
+    return bool(np.all(s[1:] != s[:-1]))
 
 
 def _check_refs(refs: np.ndarray, ids: np.ndarray, what: str, target: str) -> None:

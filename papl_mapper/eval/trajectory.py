@@ -65,7 +65,7 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
         text = path.read_text()
     except UnicodeDecodeError as exc:
         raise InputError(f"{path}: not a text TUM trajectory ({exc})") from exc
-    rows = []
+    rows, line_no = [], []
     for k, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -85,17 +85,22 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
         if q_norm < 1e-6:
             raise InputError(f"{path}: line {k} has a zero quaternion")
         rows.append(values)
+        line_no.append(k)
     if not rows:
         raise InputError(f"{path}: holds no poses")
-    data = np.asarray(rows, np.float64)
+    data, lines = np.asarray(rows, np.float64), np.asarray(line_no)
     t = data[:, 0]
     if np.any(np.diff(t) < 0):
         log.warning("%s: timestamps are not sorted; sorting them", path)
         order = np.argsort(t, kind="stable")
-        data, t = data[order], t[order]
+        data, t, lines = data[order], t[order], lines[order]
     dup = np.flatnonzero(np.diff(t) == 0)
     if dup.size:
-        raise InputError(f"{path}: timestamp {t[dup[0]]!r} appears twice; each pose needs its own timestamp")
+        i = dup[0]
+        raise InputError(
+            f"{path}: lines {lines[i]} and {lines[i + 1]} share timestamp {float(t[i])!r}; "
+            "each pose needs its own timestamp"
+        )
     T = np.repeat(np.eye(4)[None], len(data), axis=0)
     T[:, :3, :3] = Rotation.from_quat(data[:, 4:8]).as_matrix()  # scalar-last (x, y, z, w), normalised
     T[:, :3, 3] = data[:, 1:4]
