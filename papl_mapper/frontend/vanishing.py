@@ -54,7 +54,7 @@ class VPConfig:
     to the vanishing point is below this."""
     refine_angle_deg: float = 2.0
     """Inlier angle for the SVD refinement sets."""
-    refine_iterations: int = 3
+    refine_iterations: int = 5
     """Refine-then-reclassify rounds (iteratively reweighted)."""
     refine_cauchy_deg: float = 2.0
     """Scale of the Cauchy weight 1 / (1 + (angle / scale)^2) of a segment in the SVD refinement."""
@@ -94,7 +94,7 @@ class VPResult:
     dirs_c: np.ndarray  # (V, 3) unit camera-frame directions; row 0 vertical when vertical_index == 0
     labels: np.ndarray  # (S,) int64 index into dirs_c, -1 non-structural
     vertical_index: int = -1  # 0 or -1
-    scores: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (V,) sphere-grid score
+    scores: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (V,) proposal score (grid or support)
     inlier_counts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (V,)
     method: str = ""  # "vertical-prior-atlanta", "vertical-prior-manhattan" or "two-line-manhattan"
 
@@ -154,7 +154,7 @@ def segment_vp_angles_deg(segments: np.ndarray, K: np.ndarray, dirs_c: np.ndarra
     cross = np.abs(u[:, None, 0] * w[..., 1] - u[:, None, 1] * w[..., 0])
     dot = np.abs(u[:, None, 0] * w[..., 0] + u[:, None, 1] * w[..., 1])
     ang = np.degrees(np.arctan2(cross, dot))
-    degenerate = (np.linalg.norm(w, axis=2) < 1e-9) | (np.hypot(u[:, 0], u[:, 1]) < 1e-9)[:, None]
+    degenerate = (np.hypot(w[..., 0], w[..., 1]) < 1e-9) | (np.hypot(u[:, 0], u[:, 1]) < 1e-9)[:, None]
     ang[degenerate] = 90.0
     return ang
 
@@ -322,7 +322,7 @@ def _support(s: _Segments, K: np.ndarray, dirs: np.ndarray, mask: np.ndarray, co
 
 
 def _horizontal_proposals(
-    s: _Segments, K: np.ndarray, dv: np.ndarray, grid: _SphereGrid, config: VPConfig
+    s: _Segments, K: np.ndarray, dv: np.ndarray, grid: _SphereGrid | None, config: VPConfig
 ) -> tuple[list[np.ndarray], list[float]]:
     """Best horizontal directions about the vertical dv: two peaks (Atlanta) or an orthogonal pair.
 
@@ -336,7 +336,7 @@ def _horizontal_proposals(
     theta = np.radians(np.arange(0.0, 360.0, config.proposal_step_deg))
     dh = np.cos(theta)[:, None] * base[None] + np.sin(theta)[:, None] * other[None]  # (T, 3)
     dh2 = np.cross(dv[None], dh)  # (T, 3) the Manhattan partner of each proposal
-    if config.score == "grid":
+    if grid is not None:
         s1 = grid.score(dh)
         if config.manhattan_only:
             i = int(np.argmax(s1 + grid.score(dh2)))
@@ -430,7 +430,6 @@ def estimate_frame(
     config = config or VPConfig()
     s = _prepare(segments, K, config)
     K = np.asarray(K, np.float64)
-    grid = _SphereGrid(s, config)
     if vertical_c is not None and config.use_vertical_prior:
         dv = np.asarray(vertical_c, np.float64).reshape(3)
         if not np.all(np.isfinite(dv)) or np.linalg.norm(dv) < 1e-12:
@@ -438,12 +437,18 @@ def estimate_frame(
         dv = _sign_up(dv / np.linalg.norm(dv))
         if int(s.valid.sum()) < 2:
             raise GeometryError(f"vanishing points: {int(s.valid.sum())} usable segments (need at least 2)")
+        grid = _SphereGrid(s, config) if config.score == "grid" else None
         hs, hscores = _horizontal_proposals(s, K, dv, grid, config)
         dirs = [dv, *hs]
-        scores = [float(grid.score(dv[None])[0]), *hscores]
+        if grid is not None:
+            v_score = float(grid.score(dv[None])[0])
+        else:
+            v_score = float(_support(s, K, dv[None], s.valid, config).sum())
+        scores = [v_score, *hscores]
         fixed = set() if config.refine_vertical else {0}
         method = "vertical-prior-manhattan" if config.manhattan_only else "vertical-prior-atlanta"
         return _finish(s, K, dirs, scores, 0, fixed, config, method, prior=True)
+    grid = _SphereGrid(s, config)
     triple, _ = _two_line_search(s, grid, config)
     vi = _pick_vertical(triple, config)
     scores = [float(x) for x in grid.score(triple)]
