@@ -125,7 +125,11 @@ class Renderer:
         shade = np.where(self.emissive[sc.quad_material], 1.0, 0.6 + 0.4 * (n_world_facing @ LIGHT_DIR))
         xs_all = np.arange(W, dtype=np.float32)
         ys_all = np.arange(H, dtype=np.float32)
-        for q in np.flatnonzero(visible & (np.abs(d_c) > 1e-9)):
+        todo = np.flatnonzero(visible & (np.abs(d_c) > 1e-9))
+        todo = todo[
+            np.argsort(np.abs(d_c[todo]), kind="stable")
+        ]  # near planes first: later ones fail the depth test
+        for q in todo:
             poly = _clip_near(Pc[q], self.tex_ab[q])
             if poly is None:
                 continue
@@ -141,16 +145,21 @@ class Renderer:
             w, h = x1 - x0, y1 - y0
             mask = np.zeros((h, w), np.uint8)
             pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
-            cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=4)
+            cv2.fillPoly(mask, [pts], 255, lineType=cv2.LINE_8, shift=4)
             # inverse depth of pixel (u, v): (n_c . K^-1 [u v 1]) / d_c, affine in u and v
             a, b, c = (self.K_inv.T @ n_c[q]) / d_c[q]
-            invz = np.float32(a) * xs_all[x0:x1][None] + (
-                np.float32(b) * ys_all[y0:y1][:, None] + np.float32(c)
-            )
+            invz = (np.float32(a) * xs_all[x0:x1])[None] + (np.float32(b) * ys_all[y0:y1] + np.float32(c))[
+                :, None
+            ]
             zb = zbuf[y0:y1, x0:x1]
-            m = (mask > 0) & (invz > zb)
-            if not m.any():
+            m = cv2.bitwise_and(cv2.compare(invz, zb, cv2.CMP_GT), mask)
+            bx, by, bw, bh = cv2.boundingRect(m)  # warp only where the quad wins the depth test
+            if bw == 0:
                 continue
+            m = m[by : by + bh, bx : bx + bw]
+            invz = invz[by : by + bh, bx : bx + bw]
+            zb = zb[by : by + bh, bx : bx + bw]
+            x0, y0, w, h = x0 + bx, y0 + by, bw, bh
             M, level = self._texture_map(q, R, t, pc, ab, x0, y0)
             tex = self.pyramids[sc.quad_material[q]][level]
             warped = cv2.warpPerspective(
@@ -158,8 +167,8 @@ class Renderer:
             )
             if shade[q] != 1.0:
                 warped = cv2.convertScaleAbs(warped, alpha=float(shade[q]))
-            np.copyto(img[y0:y1, x0:x1], warped, where=m[..., None])
-            np.copyto(zb, invz, where=m)
+            cv2.copyTo(warped, m, img[y0:y1, x0:x1])  # writes through the views
+            cv2.copyTo(invz, m, zb)
         return img, zbuf
 
     def _texture_map(self, q, R, t, pc, ab, x0, y0) -> tuple[np.ndarray, int]:
