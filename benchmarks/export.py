@@ -56,7 +56,8 @@ def synthetic_map(n_segments: int, n_points: int, n_keyframes: int = 500, seed: 
     lines = Lines(
         lids, ends, w, state,
         np.where(lab >= 0, 0, -1).astype(np.int64), np.where(lab >= 0, 0.2, np.nan),
-        np.stack([lids, rng.integers(0, n_keyframes, n_segments)], axis=1), rng.uniform(0, 480, (n_segments, 4)),
+        np.stack([lids, rng.integers(0, n_keyframes, n_segments)], axis=1),
+        rng.uniform(0, 480, (n_segments, 4)),
     )  # fmt: skip
     pids = np.arange(n_points, dtype=np.int64)
     obs = np.stack([np.repeat(pids, 2), rng.integers(0, n_keyframes, 2 * n_points)], axis=1)
@@ -108,9 +109,8 @@ def main() -> int:
         map_path = Path(tmp) / "bench.papl"
         t0 = time.perf_counter()
         synthetic_map(args.segments, args.points).save(map_path)
-        print(
-            f"map: {args.segments:,} segments, {args.points:,} points ({time.perf_counter() - t0:.1f} s to build)"
-        )
+        build_s = time.perf_counter() - t0
+        print(f"map: {args.segments:,} segments, {args.points:,} points ({build_s:.1f} s to build)")
         print(f"{'format':<11} {'seconds':>8} {'peak MB':>8} {'map MB':>7} {'size MB':>8}  goal")
         for suffix in formats:
             out = Path(tmp) / f"out{suffix}"
@@ -139,8 +139,8 @@ def main() -> int:
             rows[suffix] = row
             goal = {True: "met", False: "MISSED"}.get(row.get("meets_goal"), "")
             print(
-                f"{suffix:<11} {row['seconds']:>8.2f} {row['peak_rss_mb']:>8.0f} {row['map_loaded_rss_mb']:>7.0f} "
-                f"{row['file_size_mb']:>8.1f}  {goal}"
+                f"{suffix:<11} {row['seconds']:>8.2f} {row['peak_rss_mb']:>8.0f} "
+                f"{row['map_loaded_rss_mb']:>7.0f} {row['file_size_mb']:>8.1f}  {goal}"
             )
             for p in out.parent.glob("out*"):
                 if p.is_dir():
