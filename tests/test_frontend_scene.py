@@ -258,3 +258,30 @@ def test_renderer_projects_panel_edges_onto_intensity_steps():
         m = np.maximum.reduce([mag[ys + dy, xs + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
         strong.append(np.median(m))
     assert np.median(strong) > 100
+
+
+def backproject(room: Room, camera: Camera, T_wc: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """World points (N, 3) seen at pixels uv (N, 2): the nearest face hit by each pixel's ray."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    rays = np.column_stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy])
+    rays = np.column_stack([rays, np.ones(len(uv))]) @ T_wc[:3, :3].T
+    c = T_wc[:3, 3]
+    best = np.full(len(uv), np.inf)
+    for f in room.faces:
+        n = np.cross(f.u, f.v)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = ((f.origin - c) @ n) / (rays @ n)
+        rel = c + rays * lam[:, None] - f.origin
+        s = rel @ f.u / (f.u @ f.u)
+        t = rel @ f.v / (f.v @ f.v)
+        ok = (lam > 0) & (s >= -1e-6) & (s <= 1 + 1e-6) & (t >= -1e-6) & (t <= 1 + 1e-6)
+        best = np.where(ok & (lam < best), lam, best)
+    return c + rays * best[:, None]
+
+
+def project(camera: Camera, T_wc: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of world points (N, 3)."""
+    T_cw = np.linalg.inv(T_wc)
+    Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
+    x = Xc @ camera.K.T
+    return x[:, :2] / x[:, 2:3]
