@@ -24,7 +24,10 @@ def format_rows(row_format: str, *columns: np.ndarray) -> bytes:
         return b""
     cols = [np.asarray(c).reshape(len(c), -1) for c in columns]
     n = len(cols[0])
-    exact = all(c.dtype.kind == "f" or c.size == 0 or np.abs(c).max() < 2**53 for c in cols)
+    exact = all(
+        c.dtype.kind == "f" or (c.dtype.kind in "iub" and (c.size == 0 or np.abs(c).max() < 2**53))
+        for c in cols
+    )
     if exact and _FLOAT_SAFE.fullmatch(row_format):
         # every conversion takes a float (%d truncates one exactly below 2**53): one float64 table,
         # whose .tolist() runs in C, instead of an object table filled column by column
@@ -42,7 +45,7 @@ def format_rows(row_format: str, *columns: np.ndarray) -> bytes:
         block = np.empty((stop - start, width), dtype=object)
         k = 0
         for c in cols:
-            block[:, k : k + c.shape[1]] = c[start:stop].tolist()
+            block[:, k : k + c.shape[1]] = c[start:stop]  # numpy stores Python ints and floats
             k += c.shape[1]
         out.append(((row_format * (stop - start)) % tuple(block.ravel().tolist())).encode())
     return b"".join(out)

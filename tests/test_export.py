@@ -317,6 +317,12 @@ def read_kitti(path: Path) -> dict:
     return {"trajectory": traj.positions_xyz, "poses": np.asarray(traj.poses_se3)}
 
 
+def _cam_from_world(image):
+    """pycolmap >= 3.12 made Image.cam_from_world a method; before, it was a property."""
+    c = image.cam_from_world
+    return c() if callable(c) else c
+
+
 def read_colmap(path: Path) -> dict:
     pycolmap = pytest.importorskip("pycolmap")
     rec = pycolmap.Reconstruction(str(path))
@@ -324,7 +330,7 @@ def read_colmap(path: Path) -> dict:
     poses = []
     for i in ids:
         T_cw = np.eye(4)
-        T_cw[:3] = rec.images[i].cam_from_world().matrix()
+        T_cw[:3] = _cam_from_world(rec.images[i]).matrix()
         poses.append(np.linalg.inv(T_cw))
     pts = np.array([rec.points3D[k].xyz for k in sorted(rec.points3D)]).reshape(-1, 3)
     poses = np.asarray(poses).reshape(-1, 4, 4)
@@ -496,7 +502,7 @@ def test_colmap_matches_opencv_projection(kmap: Map, tmp_path: Path):
         assert im.name == f"frame_{kmap.keyframes.frame_index[kf_row]:06d}.png"
         for p2d in im.points2D:
             xyz = rec.points3D[p2d.point3D_id].xyz
-            proj = cam.img_from_cam(im.cam_from_world() * xyz)
+            proj = cam.img_from_cam(_cam_from_world(im) * xyz)
             max_err = max(max_err, float(np.abs(proj - p2d.xy).max()))
             row = p2d.point3D_id - 1
             sel = (pts.obs_ids[:, 0] == pts.ids[row]) & (pts.obs_ids[:, 1] == kmap.keyframes.ids[kf_row])
@@ -689,3 +695,16 @@ def test_ply_header_is_what_open3d_writes(kmap: Map):
     ):
         assert want in head
     assert io.BytesIO(export_ply(kmap)).read(3) == b"ply"
+
+
+def test_format_rows_matches_python_formatting():
+    from papl_mapper.exporters.text import BLOCK_ROWS, format_rows
+
+    rng = np.random.default_rng(0)
+    n = BLOCK_ROWS + 7  # more than one block
+    ints, floats = rng.integers(-(10**6), 10**6, n), rng.normal(size=(n, 2)) * 1e3
+    want = "".join(f"{i:d} {a:.9g} {b:.3f}\n" for i, a, b in zip(ints, *floats.T, strict=True)).encode()
+    assert format_rows("%d %.9g %.3f\n", ints, floats) == want  # float path
+    big = np.array([2**60 + 1, 7])  # beyond float64's exact integers: the object path keeps them exact
+    assert format_rows("%d %X\n", big, big) == f"{2**60 + 1} {2**60 + 1:X}\n7 7\n".encode()
+    assert format_rows("%d\n", np.zeros(0, int)) == b""
