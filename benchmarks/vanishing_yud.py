@@ -41,6 +41,7 @@ VARIANTS: dict[str, tuple[bool, VPConfig]] = {
     "prior_manhattan": (True, VPConfig(manhattan_only=True)),
     "prior_manhattan_no_refine": (True, VPConfig(manhattan_only=True, refine_svd=False)),
     "prior_atlanta_grid_score": (True, VPConfig(score="grid")),
+    "prior_atlanta_orth_pref_0.5": (True, VPConfig(orthogonal_preference=0.5)),
     "no_prior": (False, VPConfig()),
     "no_prior_no_refine": (False, VPConfig(refine_svd=False)),
 }

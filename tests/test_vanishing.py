@@ -207,3 +207,15 @@ def test_bad_input():
     segs, _ = _segments(_camera(0, 0, 0), [_h(0.0), _h(90.0)], [30, 30], 0.2, 0, rng)
     with pytest.raises(GeometryError, match="near-vertical"):
         estimate_vertical([segs], K)
+
+
+def test_orthogonal_preference_takes_a_weaker_orthogonal_partner():
+    dirs = [np.array([0.0, 0.0, 1.0]), _h(20.0), _h(110.0), _h(65.0)]  # 110 is orthogonal to 20
+    rng = np.random.default_rng(0)
+    R_cw = _camera(-30.0, -6.0, -3.0)
+    segs, _ = _segments(R_cw, dirs, [40, 60, 30, 45], NOISE_PX, 10, rng)
+    true_c = np.array([R_cw @ d for d in dirs])
+    pure = estimate_frame(segs, K, true_c[0])  # Atlanta: the better-supported 65-degree direction
+    assert _errors(true_c[[0, 1, 3]], pure.dirs_c).max() < MAX_ERR_NOISY_DEG
+    pref = estimate_frame(segs, K, true_c[0], VPConfig(orthogonal_preference=0.5))
+    assert _errors(true_c[[0, 1, 2]], pref.dirs_c).max() < MAX_ERR_NOISY_DEG

@@ -66,6 +66,9 @@ class VPConfig:
     """Without a prior, the vertical is the found direction closest to the image y axis, if within this."""
     manhattan_only: bool = False
     """Second horizontal orthogonal to the first (Manhattan world) instead of the second-best peak."""
+    orthogonal_preference: float = 0.0
+    """Atlanta mode: take the horizontal orthogonal to the first when its support reaches this fraction
+    of the best second's (0: the best second, whatever its angle)."""
     use_vertical_prior: bool = True
     """Use the given vertical to generate proposals; False ignores it (the paper's ablation)."""
     refine_svd: bool = True
@@ -368,6 +371,10 @@ def _horizontal_proposals(
     j = int(np.argmax(s2))
     if s2[j] <= 0:
         return [dh[i]], [float(s1[i])]
+    if config.orthogonal_preference > 0.0:
+        k = int(np.argmin(np.abs(dh @ dh[i])))  # the proposal orthogonal to the first
+        if s2[k] >= config.orthogonal_preference * s2[j]:
+            j = k
     return [dh[i], dh[j]], [float(s1[i]), float(s2[j])]
 
 
