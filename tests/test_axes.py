@@ -168,3 +168,20 @@ def test_merge_keeps_vertical_even_if_younger():
 def test_update_shape_mismatch_raises():
     with pytest.raises(GeometryError):
         update_axes(np.eye(3), np.eye(3)[:2], AxisState.new(3))
+
+
+def test_em_gate_on_3d_direction_and_empty_input():
+    axes = np.array([[0.0, 0.0, 1.0], _h(0.0)])
+    obs = [np.array([_h(1.0)]), np.array([_h(1.0)]), np.zeros((0, 3))]  # the third line never observed
+    # line 1's 3D direction is far from every axis (a wrongly triangulated line): gated out
+    dirs = np.array([_h(0.5), _unit([1.0, 1.0, 1.0]), _h(0.0)])
+    w = associate(obs, axes, line_dirs_w=dirs)
+    np.testing.assert_allclose(w, [[0.0, 1.0], [0.0, 0.0], [0.0, 0.0]], atol=1e-12)
+    w2 = associate(obs, axes)  # gate on the mean vanishing-direction angle instead
+    np.testing.assert_allclose(w2, [[0.0, 1.0], [0.0, 1.0], [0.0, 0.0]], atol=1e-12)
+    assert associate([], axes).shape == (0, 2)
+    assert associate(obs, np.zeros((0, 3))).shape == (3, 0)
+    packed = (np.zeros((0, 3)), np.zeros(0, np.int64))
+    np.testing.assert_array_equal(associate(packed, axes, n_lines=4), np.zeros((4, 2)))
+    with pytest.raises(GeometryError):
+        associate(obs, axes, line_dirs_w=dirs[:2])

@@ -50,11 +50,15 @@ def associate(
     axes: np.ndarray,
     config: AxesConfig | None = None,
     n_lines: int | None = None,
+    *,
+    line_dirs_w: np.ndarray | None = None,
 ) -> np.ndarray:
     """Soft weights (N, A): w_kj >= 0, rows sum to 1, or to 0 for a line outside every gate.
 
     `line_obs_dirs_w` is either a list (one (k,3) array per line) or a packed pair
-    (directions (M,3), line index (M,)) with `n_lines` lines.
+    (directions (M,3), line index (M,)) with `n_lines` lines. The gate is on the angle between the
+    line's estimated 3D direction `line_dirs_w` (N,3) and the axis when given (as in the paper),
+    else on the mean vanishing-direction angle; a line with no observation gets weight 0.
     """
     config = config or AxesConfig()
     if isinstance(line_obs_dirs_w, tuple):
@@ -68,6 +72,12 @@ def associate(
         return np.zeros((n, len(axes)))
     ang = mean_angles_deg(obs, index, n, axes)  # (N, A)
     gated = ang <= config.gate_deg
+    if line_dirs_w is not None:
+        dirs = unit_rows(line_dirs_w, "line directions")
+        if len(dirs) != n:
+            raise GeometryError(f"line_dirs_w has {len(dirs)} rows for {n} lines")
+        gate_ang = np.degrees(np.arccos(np.clip(np.abs(dirs @ unit_rows(axes, "axes").T), 0.0, 1.0)))
+        gated = (gate_ang <= config.gate_deg) & np.isfinite(ang)
     lik = np.where(gated, np.exp(-0.5 * (np.where(gated, ang, 0.0) / config.sigma_deg) ** 2), 0.0)
     prior = np.full(len(axes), 1.0 / len(axes))
     w = np.zeros_like(lik)
