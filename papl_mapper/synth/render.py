@@ -126,9 +126,8 @@ class Renderer:
         xs_all = np.arange(W, dtype=np.float32)
         ys_all = np.arange(H, dtype=np.float32)
         todo = np.flatnonzero(visible & (np.abs(d_c) > 1e-9))
-        todo = todo[
-            np.argsort(np.abs(d_c[todo]), kind="stable")
-        ]  # near planes first: later ones fail the depth test
+        # near planes first, so that later ones mostly fail the depth test and skip their warp
+        todo = todo[np.argsort(np.abs(d_c[todo]), kind="stable")]
         for q in todo:
             poly = _clip_near(Pc[q], self.tex_ab[q])
             if poly is None:
@@ -148,9 +147,9 @@ class Renderer:
             cv2.fillPoly(mask, [pts], 255, lineType=cv2.LINE_8, shift=4)
             # inverse depth of pixel (u, v): (n_c . K^-1 [u v 1]) / d_c, affine in u and v
             a, b, c = (self.K_inv.T @ n_c[q]) / d_c[q]
-            invz = (np.float32(a) * xs_all[x0:x1])[None] + (np.float32(b) * ys_all[y0:y1] + np.float32(c))[
-                :, None
-            ]
+            inv_x = np.float32(a) * xs_all[x0:x1]
+            inv_y = np.float32(b) * ys_all[y0:y1] + np.float32(c)
+            invz = inv_x[None] + inv_y[:, None]
             zb = zbuf[y0:y1, x0:x1]
             m = cv2.bitwise_and(cv2.compare(invz, zb, cv2.CMP_GT), mask)
             bx, by, bw, bh = cv2.boundingRect(m)  # warp only where the quad wins the depth test
@@ -167,7 +166,7 @@ class Renderer:
             )
             if shade[q] != 1.0:
                 warped = cv2.convertScaleAbs(warped, alpha=float(shade[q]))
-            cv2.copyTo(warped, m, img[y0:y1, x0:x1])  # writes through the views
+            cv2.copyTo(warped, m, img[y0 : y0 + h, x0 : x0 + w])  # writes through the views
             cv2.copyTo(invz, m, zb)
         return img, zbuf
 
