@@ -552,3 +552,33 @@ def test_cli_bad_inputs_are_one_line(tmp_path, capsys):
     assert main(["eval", "--gt", str(tmp_path / "scene"), str(tmp_path / "m.papl")]) == 0
     out = capsys.readouterr().out
     assert "ATE RMSE" in out and "lines @ 2%" in out
+
+
+def test_parallel_offsets_give_known_recall_with_random_noise():
+    """Each estimate is its GT segment shifted sideways at random: recall(tau) = share with offset <= tau."""
+    rng = np.random.default_rng(21)
+    n = 200
+    mids = np.stack([np.arange(n) * 3.0, rng.uniform(0, 5, n), rng.uniform(0, 5, n)], axis=1)  # well apart
+    d = np.array([0.0, 0.6, 0.8])
+    L = rng.uniform(0.5, 2.0, n)
+    gt = np.stack([mids - 0.5 * L[:, None] * d, mids + 0.5 * L[:, None] * d], axis=1)
+    offset = rng.uniform(0, 0.2, n)
+    est = gt + (offset[:, None] * [1.0, 0, 0])[:, None, :]  # perpendicular to d
+    taus = np.array([0.05, 0.1, 0.15])
+    recall, precision, _, _ = line_metrics(gt, est, taus, 0.01)
+    want = np.array([L[offset <= t].sum() / L.sum() for t in taus])
+    np.testing.assert_allclose(recall, want, atol=1e-12)
+    np.testing.assert_allclose(precision, want, atol=1e-12)
+
+
+def test_noisy_trajectory_ate_is_the_noise_level(tmp_path):
+    gt = walk(n=400)
+    segs, lab = room_segments()
+    write_gt(tmp_path / "scene", gt, segs, lab)
+    sigma = 0.02
+    est = transform_traj(gt, np.linalg.inv(random_sim3(seed=5, scale=0.8)))
+    est.T_wc[:, :3, 3] += np.random.default_rng(6).normal(0, sigma / 0.8, (len(gt), 3))  # sigma in GT units
+    res = evaluate(tmp_path / "scene", map_from(est, segs, lab))
+    assert res.scale == pytest.approx(0.8, rel=NOISY_SCALE_REL)
+    assert res.ate_rmse == pytest.approx(sigma * math.sqrt(3), rel=0.1)  # 3D noise: RMSE = sqrt(3) sigma
+    assert res.ate_rmse < res.ate_max
