@@ -83,24 +83,26 @@ def make_scene(spec: SceneSpec) -> Map:
             & (uv[..., 1] < cam.height - 1)
         )
 
-    def windowed(n: int) -> np.ndarray:
-        """(n, N) which keyframes may observe each landmark."""
+    def windowed(P: np.ndarray) -> np.ndarray:
+        """(n, N) which keyframes may observe each landmark: all, or max_views around the nearest camera."""
+        n = len(P)
         if spec.max_views <= 0:
             return np.ones((n, N), bool)
-        start = rng.integers(0, max(N - spec.max_views, 0) + 1, n)
+        nearest = np.argmin(np.abs(P[:, None, 0] - C[None, :, 0]), axis=1)
+        start = np.clip(nearest - spec.max_views // 2 + rng.integers(-1, 2, n), 0, max(N - spec.max_views, 0))
         k = np.arange(N)[None]
         return (k >= start[:, None]) & (k < start[:, None] + spec.max_views)
 
     # points
     uv, z = geo.project_points(K, T[None], X[:, None])  # (P, N, 2)
-    vis = visible(uv, z) & windowed(len(X))
+    vis = visible(uv, z) & windowed(X)
     twice = vis.sum(1) >= 2  # every landmark is seen at least twice
     X, vis, uv = X[twice], vis[twice], uv[twice]
     pi, ki = np.nonzero(vis)
     obs_uv = uv[pi, ki] + rng.normal(scale=spec.obs_noise_px, size=(len(pi), 2))
     # lines: both endpoints visible
     uve, ze = geo.project_points(K, T[None, :, None], ends[:, None])  # (M, N, 2, 2)
-    lvis = visible(uve, ze).all(-1) & windowed(len(ends))
+    lvis = visible(uve, ze).all(-1) & windowed(ends.mean(1))
     two = lvis.sum(1) >= 2
     ends, labels, lvis, uve = ends[two], labels[two], lvis[two], uve[two]
     li, lk = np.nonzero(lvis)
