@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from papl_mapper.errors import InputError
 
-#: Queries per chunk in the exact-distance step (bounds memory at about chunk * k * 100 bytes).
+#: Queries per chunk at 8 candidates each in the exact-distance step (memory ~ chunk * 8 * 100 bytes).
 _CHUNK = 131_072
 
 
@@ -114,8 +114,9 @@ def nearest_segment_distance(
     while len(todo):
         k = min(k, len(pts))
         saturated = []
-        for c0 in range(0, len(todo), _CHUNK):
-            rows = todo[c0 : c0 + _CHUNK]
+        chunk = max(256, _CHUNK * 8 // k)  # about a million (query, candidate) pairs at a time
+        for c0 in range(0, len(todo), chunk):
+            rows = todo[c0 : c0 + chunk]
             dist, idx = tree.query(queries[rows], k=k, distance_upper_bound=radius)
             dist, idx = np.asarray(dist).reshape(len(rows), k), np.asarray(idx).reshape(len(rows), k)
             found = idx < len(pts)
