@@ -11,7 +11,6 @@ from papl_mapper.frontend.lines import (
     LineConfig,
     LineTracker,
     SegmentDetector,
-    _similar_angle_pairs,
     fuse_collinear,
     match_keyframe_lines,
     orient_by_polarity,
@@ -29,17 +28,6 @@ def walk():
     """24 noisy frames of the test room with their projected GT segments (and GT ids)."""
     frames, _, _, gts = rendered_walk(24)
     return frames, gts
-
-
-def test_similar_angle_pairs_equal_brute_force():
-    rng = np.random.default_rng(1)
-    u = rng.normal(size=(300, 2))
-    u /= np.linalg.norm(u, axis=1)[:, None]
-    u[:5] = [[1, 0], [-1, 1e-3], [1, -1e-3], [0, 1], [1e-3, -1]]  # wrap-around at 0 / pi
-    i, j = _similar_angle_pairs(u, np.radians(2.0))
-    c = np.abs(u @ u.T) >= np.cos(np.radians(2.0))
-    bi, bj = np.nonzero(np.triu(c, 1))
-    assert set(zip(i.tolist(), j.tolist(), strict=True)) == set(zip(bi.tolist(), bj.tolist(), strict=True))
 
 
 def test_fusion_merges_collinear_fragments_only():

@@ -18,6 +18,8 @@ from typing import Literal
 
 import cv2
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 log = logging.getLogger(__name__)
@@ -108,7 +110,11 @@ class SegmentDetector:
 
 
 def fuse_collinear(segs: np.ndarray, angle_deg: float, dist_px: float, gap_px: float) -> np.ndarray:
-    """Merge groups of nearly collinear fragments (angle, line distance and gap gates; transitive)."""
+    """Merge groups of nearly collinear fragments (angle, line distance and gap gates; transitive).
+
+    Candidate pairs have endpoints within gap_px + dist_px of each other: detector fragments of
+    one edge follow each other along it. Overlapping duplicates (LSD double responses) are kept.
+    """
     segs = np.asarray(segs, np.float64).reshape(-1, 4)
     n = len(segs)
     if n < 2:
@@ -118,10 +124,18 @@ def fuse_collinear(segs: np.ndarray, angle_deg: float, dist_px: float, gap_px: f
     length = np.linalg.norm(d, axis=1)
     u = d / np.maximum(length, 1e-9)[:, None]
     nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
-    ii, jj = _similar_angle_pairs(u, np.radians(angle_deg))
-    mid = (p1 + p2) / 2
-    near = np.linalg.norm(mid[ii] - mid[jj], axis=1) <= (length[ii] + length[jj]) / 2 + gap_px
-    ii, jj = ii[near], jj[near]
+    # candidates: fragments with endpoints within the gap (EDLines chains do not overlap), similar angle
+    ends = np.vstack([p1, p2])
+    pairs = cKDTree(ends).query_pairs(gap_px + dist_px, output_type="ndarray") % n
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    if len(pairs) == 0:
+        return segs
+    key = np.unique(
+        np.minimum(pairs[:, 0], pairs[:, 1]).astype(np.int64) * n + np.maximum(pairs[:, 0], pairs[:, 1])
+    )
+    ii, jj = key // n, key % n
+    similar = np.abs(np.sum(u[ii] * u[jj], axis=1)) >= np.cos(np.radians(angle_deg))
+    ii, jj = ii[similar], jj[similar]
     if len(ii) == 0:
         return segs
     # distance of j's endpoints to line i and of i's endpoints to line j
@@ -138,57 +152,35 @@ def fuse_collinear(segs: np.ndarray, angle_deg: float, dist_px: float, gap_px: f
     ok = close & (gap <= gap_px)
     if not ok.any():
         return segs
-    parent = np.arange(n)
-
-    def find(a: int) -> int:
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    for a, b in zip(ii[ok].tolist(), jj[ok].tolist(), strict=True):
-        ra, rb = find(a), find(b)
-        if ra != rb:
-            parent[rb] = ra
-    roots = np.array([find(a) for a in range(n)])
-    single = np.bincount(roots, minlength=n)[roots] == 1
-    out = list(segs[single])
+    _, label = connected_components(coo_matrix((np.ones(int(ok.sum())), (ii[ok], jj[ok])), shape=(n, n)))
+    size = np.bincount(label)
+    single = size[label] == 1
     multi = np.flatnonzero(~single)
-    order = multi[np.argsort(roots[multi], kind="stable")]
-    splits = np.flatnonzero(np.diff(roots[order])) + 1
-    for members in np.split(order, splits) if len(order) else []:
-        ref = u[members[np.argmax(length[members])]]
-        sign = np.where(u[members] @ ref < 0, -1.0, 1.0)
-        direction = np.sum(u[members] * (sign * length[members])[:, None], axis=0)
-        direction /= np.linalg.norm(direction)
-        w = length[members] / length[members].sum()
-        centre = np.sum(((p1[members] + p2[members]) / 2) * w[:, None], axis=0)
-        pts = np.vstack([p1[members], p2[members]])
-        t = (pts - centre) @ direction
-        out.append(np.concatenate([centre + t.min() * direction, centre + t.max() * direction]))
-    return np.array(out, np.float64)
-
-
-def _similar_angle_pairs(u: np.ndarray, thr_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs (i < j) of unit directions (N, 2) within thr_rad as undirected lines, via a sorted sweep."""
-    theta = np.mod(np.arctan2(u[:, 1], u[:, 0]), np.pi)
-    order = np.argsort(theta)
-    th = theta[order]
-    n = len(th)
-    ext = np.concatenate([th, th + np.pi])  # wrap-around: lines near 0 and near pi are similar
-    start = np.arange(1, n + 1)
-    stop = np.minimum(np.searchsorted(ext, th + thr_rad, side="right"), np.arange(n) + n)
-    count = np.maximum(stop - start, 0)
-    if count.sum() == 0:
-        return np.zeros(0, np.intp), np.zeros(0, np.intp)
-    a = np.repeat(np.arange(n), count)
-    offs = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    b = (np.repeat(start, count) + offs) % n
-    i, j = order[a], order[b]
-    keep = i != j
-    i, j = i[keep], j[keep]
-    key = np.unique(np.minimum(i, j).astype(np.int64) * n + np.maximum(i, j))
-    return key // n, key % n
+    g = label[multi]
+    # per group: length-weighted direction (signs aligned to the longest member) and centre
+    longest = np.full(len(size), -1)
+    order = multi[np.argsort(length[multi], kind="stable")]
+    longest[label[order]] = order  # the last write per group is its longest member
+    sign = np.where(np.sum(u[multi] * u[longest[g]], axis=1) < 0, -1.0, 1.0)
+    dsum = np.zeros((len(size), 2))
+    np.add.at(dsum, g, u[multi] * (sign * length[multi])[:, None])
+    wsum = np.bincount(g, weights=length[multi], minlength=len(size))
+    csum = np.zeros((len(size), 2))
+    np.add.at(csum, g, ((p1[multi] + p2[multi]) / 2) * length[multi][:, None])
+    groups = np.flatnonzero(size > 1)
+    direction = dsum[groups] / np.linalg.norm(dsum[groups], axis=1)[:, None]
+    centre = csum[groups] / wsum[groups][:, None]
+    slot = np.full(len(size), -1)
+    slot[groups] = np.arange(len(groups))
+    k = slot[g]
+    t1 = np.sum((p1[multi] - centre[k]) * direction[k], axis=1)
+    t2 = np.sum((p2[multi] - centre[k]) * direction[k], axis=1)
+    tmin = np.full(len(groups), np.inf)
+    tmax = np.full(len(groups), -np.inf)
+    np.minimum.at(tmin, k, np.minimum(t1, t2))
+    np.maximum.at(tmax, k, np.maximum(t1, t2))
+    merged = np.hstack([centre + tmin[:, None] * direction, centre + tmax[:, None] * direction])
+    return np.vstack([segs[single], merged])
 
 
 def orient_by_polarity(segs: np.ndarray, gray: np.ndarray, offset_px: float = 2.0) -> np.ndarray:
