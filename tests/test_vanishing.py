@@ -202,6 +202,16 @@ def test_bad_input():
         estimate_frame(np.array([[0, 0, 100, 0.0]]), K)  # one segment
     with pytest.raises(GeometryError):
         estimate_frame(np.array([[0, 0, 100, 0.0], [0, 10, 100, 10.0]]), K, np.zeros(3))
+    # a NaN segment is labelled non-structural and does not disturb the others
+    rng = np.random.default_rng(17)
+    R_cw = _camera(40.0, 8.0, 4.0)
+    segs, _ = _segments(R_cw, MANHATTAN, [30, 30, 30], NOISE_PX, 0, rng)
+    bad = np.vstack([segs, [np.nan, 1.0, 2.0, 3.0], [5.0, 5.0, 5.0, 5.0]])  # NaN and zero length
+    res = estimate_frame(bad, K, R_cw @ MANHATTAN[0])
+    clean = estimate_frame(segs, K, R_cw @ MANHATTAN[0])
+    assert res.labels[-2:].tolist() == [-1, -1]
+    np.testing.assert_array_equal(res.labels[:-2], clean.labels)
+    np.testing.assert_allclose(res.dirs_c, clean.dirs_c, atol=1e-12)
     # horizontal-only texture: no vertical direction to find
     rng = np.random.default_rng(16)
     segs, _ = _segments(_camera(0, 0, 0), [_h(0.0), _h(90.0)], [30, 30], 0.2, 0, rng)

@@ -48,7 +48,8 @@ class VPConfig:
     proposal_step_deg: float = 1.0
     """Step of the horizontal proposals about the vertical and of the 2-line search (paper: 1 degree)."""
     n_first_hypotheses: int = 105
-    """Random segment pairs of the 2-line search without a prior (105 x 360 = 37,800 proposals)."""
+    """Random segment pairs of the 2-line search without a prior (105 x 360 = 37,800 proposals, the
+    paper's count); segments are drawn with probability proportional to length (Lu et al.: uniform)."""
     inlier_angle_deg: float = 2.0
     """A segment is structural for a direction when its image angle to the line from its midpoint
     to the vanishing point is below this."""
