@@ -10,10 +10,12 @@ sqrt(l_i l_j) (sin 2 dtheta + 0.2), and a set of directions is scored by the gri
 
 - With a vertical prior: 360 proposals rotate a horizontal direction about the vertical at 1-degree
   steps; the best two horizontals are kept (Atlanta: any angle between them; Manhattan mode: the
-  second is orthogonal to the first).
-- Without one (ablation / first frames): the Manhattan 2-line search: a first direction from two
-  random segments, the second exhaustively on its great circle at 1-degree steps, the third their
-  cross product.
+  second is orthogonal to the first, which is the paper's proposal triple). By default they are
+  scored by their line support measured directly (config.score; the grid's 1-degree cells miss sharp
+  peaks of vanishing points near the image centre), or by the grid as Lu et al.
+- Without one (ablation / first frames): the Manhattan 2-line search on the grid: a first direction
+  from two random segments, the second exhaustively on its great circle at 1-degree steps, the third
+  their cross product.
 - Each direction is then refined by SVD on its inlier segments (the smallest right singular vector
   of the stacked segment normals), and segments are classified (index of a direction or -1).
 """
