@@ -229,3 +229,25 @@ def test_orthogonal_preference_takes_a_weaker_orthogonal_partner():
     assert _errors(true_c[[0, 1, 3]], pure.dirs_c).max() < MAX_ERR_NOISY_DEG
     pref = estimate_frame(segs, K, true_c[0], VPConfig(orthogonal_preference=0.5))
     assert _errors(true_c[[0, 1, 2]], pref.dirs_c).max() < MAX_ERR_NOISY_DEG
+
+
+def test_sequence_with_vertical_tracking():
+    """A turning, nodding camera: vertical from the first frames, then predicted by the relative
+    rotation and updated by each frame's refined vertical; every frame's directions stay accurate."""
+    rng = np.random.default_rng(18)
+    poses = [_camera(4.0 * i, 6.0 + (3.0 * np.sin(i) if i >= 3 else 0.0), 2.0) for i in range(10)]
+    frames = [_segments(R, MANHATTAN, [40, 50, 40], NOISE_PX, 15, rng)[0] for R in poses]
+    cfg = VPConfig()
+    v = estimate_vertical(frames[:3], K, cfg)
+    errs, vert_errs = [], []
+    for i, (R_cw, segs) in enumerate(zip(poses, frames, strict=True)):
+        if i > 0:
+            v = update_vertical(v, None, R_cw @ poses[i - 1].T, cfg)  # predict with x_cur = R x_prev
+        res = estimate_frame(segs, K, v, cfg)
+        v = update_vertical(v, res.vertical_c, None, cfg)
+        true_c = np.array([R_cw @ d for d in MANHATTAN])
+        errs.extend(_errors(true_c, res.dirs_c))
+        vert_errs.append(_errors(true_c[:1], v[None])[0])
+    assert np.median(errs) < MAX_ERR_NOISY_DEG / 2
+    assert np.max(errs) < MAX_ERR_NOISY_DEG * 2
+    assert np.max(vert_errs) < MAX_ERR_NOISY_DEG
