@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -23,15 +24,34 @@ from papl_mapper.frontend.keyframes import KeyframeConfig, KeyframeSelector
 from papl_mapper.frontend.klt import FlowConfig
 from papl_mapper.frontend.lines import LBD, LineConfig, LineTracker, SegmentDetector
 from papl_mapper.frontend.points import PointConfig, PointTracker
-from papl_mapper.frontend.vanishing import VPConfig, estimate_frame, estimate_vertical, update_vertical
-from papl_mapper.frontend.video import Recording
+from papl_mapper.frontend.vanishing import (
+    VPConfig,
+    classify_segments,
+    estimate_frame,
+    estimate_vertical,
+    update_vertical,
+)
+from papl_mapper.frontend.video import Frame, Recording
 from papl_mapper.map import Camera
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
 
 ProgressCallback = Callable[[int, int, str], None]
-STEPS = ("decode", "convert", "points", "lines", "line_tracking", "keyframes", "descriptors", "vp")
+# seconds per step; "lines" runs in a worker thread during "points", "lines_wait" is the main
+# thread waiting for it, "decode" the main thread waiting for the decoder thread
+STEPS = (
+    "decode",
+    "convert",
+    "points",
+    "lines",
+    "lines_wait",
+    "line_tracking",
+    "keyframes",
+    "descriptors",
+    "undistort",
+    "vp",
+)
 
 
 @dataclass
@@ -54,6 +74,11 @@ class FrontendConfig:
     """The vertical is initialised from the segments of this many first frames."""
     min_texture_std: float = 2.0
     """Frames whose gray-level standard deviation is below this are skipped as textureless."""
+    vp_stride: int = 1
+    """Estimate vanishing directions on every n-th frame and on keyframes; frames between reuse the
+    last estimate's directions and classify their own segments against them (1 = every frame)."""
+    parallel: bool = True
+    """Detect segments in a worker thread while points are tracked (OpenCV releases the GIL)."""
 
 
 @dataclass
@@ -91,144 +116,171 @@ def process(
     config = config or FrontendConfig()
     stats = stats if stats is not None else FrontendStats()
     wall0 = time.perf_counter()
-    w, h = recording.width, recording.height
-    camera = fit_camera(camera, w, h, name=f"camera for {recording.path}")
-    und = Undistorter(camera)
-    points = PointTracker(config.points, config.flow, w, h)
-    detector = SegmentDetector(config.lines)
-    lines = LineTracker(config.lines)
-    lbd = LBD()
-    selector = KeyframeSelector(config.keyframes)
-    sec = stats.seconds
+    camera = fit_camera(camera, recording.width, recording.height, name=f"camera for {recording.path}")
+    run = _Run(recording, camera, config, stats)
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="segments") if config.parallel else None
+    try:
+        for done, frame in enumerate(recording, 1):
+            message = run.frame(frame, pool)
+            if progress:
+                progress(done, run.total, message)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True)
+    tracks = run.finish()
+    stats.wall_seconds = time.perf_counter() - wall0
+    return tracks
 
-    frame_index, timestamps, is_kf, skipped = [], [], [], []
-    p_frame, p_track, p_uv = [], [], []
-    l_frame, l_track, l_xy = [], [], []
-    pd_row, pd_desc, ld_row, ld_desc = [], [], [], []
-    n_points = n_lines = 0
-    prev_gray = None
-    total = recording.expected_frames()
-    done = 0
-    it = iter(recording)
-    while True:
-        t0 = time.perf_counter()
-        frame = next(it, None)
+
+def _timed(fn: Callable, *args: object) -> tuple:
+    t0 = time.perf_counter()
+    out = fn(*args)
+    return out, time.perf_counter() - t0
+
+
+class _Run:
+    """State of one `process` call: the trackers and the growing observation lists."""
+
+    def __init__(self, recording: Recording, camera: Camera, config: FrontendConfig, stats: FrontendStats):
+        w, h = recording.width, recording.height
+        self.recording, self.config, self.stats = recording, config, stats
+        self.und = Undistorter(camera)
+        self.points = PointTracker(config.points, config.flow, w, h)
+        self.detector = SegmentDetector(config.lines)
+        self.lines = LineTracker(config.lines)
+        self.lbd = LBD()
+        self.selector = KeyframeSelector(config.keyframes)
+        self.total = recording.expected_frames()
+        self.done = 0
+        self.prev_gray: np.ndarray | None = None
+        self.frame_index: list[int] = []
+        self.timestamps: list[float] = []
+        self.is_kf: list[bool] = []
+        self.skipped: list[int] = []
+        self.p_frame, self.p_track, self.p_uv = [], [], []
+        self.l_frame, self.l_track, self.l_xy = [], [], []
+        self.pd_row, self.pd_desc, self.ld_row, self.ld_desc = [], [], [], []
+        self.n_points = self.n_lines = 0
+        self._t_last = time.perf_counter()
+
+    def frame(self, frame: Frame, pool: ThreadPoolExecutor | None) -> str:
+        """Process one decoded frame; returns a progress message."""
+        sec = self.stats.seconds
         t1 = time.perf_counter()
-        sec["decode"] += t1 - t0
-        if frame is None:
-            break
-        done += 1
+        sec["decode"] += t1 - self._t_last  # waiting for the decoder thread
+        self.done += 1
         gray = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
         t2 = time.perf_counter()
         sec["convert"] += t2 - t1
-        if _is_textureless(gray, config.min_texture_std):
-            skipped.append(frame.index)
-            prev_gray = None
-            if progress:
-                progress(done, total, f"frame {frame.index}: skipped (no texture)")
-            continue
-        t3 = t2
-        restart = prev_gray is None
-        points.step(gray, prev_gray, force_detect=restart)
+        if _is_textureless(gray, self.config.min_texture_std):
+            self.skipped.append(frame.index)
+            self.prev_gray = None
+            self._t_last = time.perf_counter()
+            return f"frame {frame.index}: skipped (no texture)"
+        points, lines = self.points, self.lines
+        restart = self.prev_gray is None
+        pending = pool.submit(_timed, self.detector.detect, gray) if pool is not None else None
+        points.step(gray, self.prev_gray, force_detect=restart)
         t4 = time.perf_counter()
-        sec["points"] += t4 - t3
-        segs = detector.detect(gray)
+        sec["points"] += t4 - t2
+        segs, line_seconds = pending.result() if pending is not None else _timed(self.detector.detect, gray)
         t5 = time.perf_counter()
-        sec["lines"] += t5 - t4
+        sec["lines"] += line_seconds
+        sec["lines_wait"] += t5 - t4
         if restart:
             lines.step(segs, None, None)
         else:
             lines.step(segs, points.flow_from, points.flow_to)
         t6 = time.perf_counter()
         sec["line_tracking"] += t6 - t5
-        kf = selector.update(points.ids, points.uv, force=restart)
+        kf = self.selector.update(points.ids, points.uv, force=restart)
         t7 = time.perf_counter()
         sec["keyframes"] += t7 - t6
-        row = len(frame_index)
+        row = len(self.frame_index)
         if kf:
             pids, pdesc = points.keyframe(gray)
-            selector.set_reference(points.ids, points.uv)
-            lids, ldesc = lines.keyframe(gray, lbd)
+            self.selector.set_reference(points.ids, points.uv)
+            lids, ldesc = lines.keyframe(gray, self.lbd)
             # descriptor rows: position of each described id among this frame's observations
-            pd_row.append(n_points + _positions(points.ids, pids))
-            pd_desc.append(pdesc)
-            ld_row.append(n_lines + _positions(lines.ids, lids))
-            ld_desc.append(ldesc)
-        sec["descriptors"] += time.perf_counter() - t7
-        frame_index.append(frame.index)
-        timestamps.append(frame.timestamp_s)
-        is_kf.append(kf)
-        k = len(points.ids)
-        p_frame.append(np.full(k, row, np.int64))
-        p_track.append(points.ids.copy())
-        p_uv.append(und.points(points.uv))
-        n_points += k
-        s = len(lines.ids)
-        l_frame.append(np.full(s, row, np.int64))
-        l_track.append(lines.ids.copy())
-        l_xy.append(und.segments(lines.segs))
-        n_lines += s
-        prev_gray = gray
-        if progress:
-            progress(
-                done, total, f"frame {frame.index}: {k} points, {s} segments{', keyframe' if kf else ''}"
+            self.pd_row.append(self.n_points + _positions(points.ids, pids))
+            self.pd_desc.append(pdesc)
+            self.ld_row.append(self.n_lines + _positions(lines.ids, lids))
+            self.ld_desc.append(ldesc)
+        t8 = time.perf_counter()
+        sec["descriptors"] += t8 - t7
+        self.frame_index.append(frame.index)
+        self.timestamps.append(frame.timestamp_s)
+        self.is_kf.append(kf)
+        k, s = len(points.ids), len(lines.ids)
+        self.p_frame.append(np.full(k, row, np.int64))
+        self.p_track.append(points.ids.copy())
+        self.p_uv.append(self.und.points(points.uv))
+        self.l_frame.append(np.full(s, row, np.int64))
+        self.l_track.append(lines.ids.copy())
+        self.l_xy.append(self.und.segments(lines.segs))
+        self.n_points += k
+        self.n_lines += s
+        self.prev_gray = gray
+        self._t_last = time.perf_counter()
+        sec["undistort"] += self._t_last - t8
+        return f"frame {frame.index}: {k} points, {s} segments{', keyframe' if kf else ''}"
+
+    def finish(self) -> Tracks:
+        """Vanishing directions over all frames, then the Tracks."""
+        rec, stats = self.recording, self.stats
+        if rec.stopped_early:
+            log.warning("%s: decoding stopped early: %s", rec.path, rec.stop_message)
+        if self.skipped:
+            log.warning("%s: skipped %d textureless frames (of %d)", rec.path, len(self.skipped), self.done)
+        if not self.frame_index:
+            raise InputError(
+                f"{rec.path}: all {self.done} decoded frames are textureless (uniform or black); "
+                "nothing to track"
             )
-
-    if recording.stopped_early:
-        log.warning("%s: decoding stopped early: %s", recording.path, recording.stop_message)
-    if skipped:
-        log.warning("%s: skipped %d textureless frames (of %d)", recording.path, len(skipped), done)
-    if not frame_index:
-        raise InputError(
-            f"{recording.path}: all {done} decoded frames are textureless (uniform or black); "
-            "nothing to track"
+        F = len(self.frame_index)
+        is_kf = np.array(self.is_kf, bool)
+        line_frame = np.concatenate(self.l_frame)
+        line_xy = np.concatenate(self.l_xy).reshape(-1, 4)
+        K = self.und.undistorted_camera.K
+        t0 = time.perf_counter()
+        line_vp, vp_dirs, vertical_vp = _vanishing(line_frame, line_xy, is_kf, K, self.config, stats)
+        stats.seconds["vp"] += time.perf_counter() - t0
+        tracks = Tracks(
+            camera=self.und.undistorted_camera,
+            frame_index=np.array(self.frame_index, np.int64),
+            timestamp=np.array(self.timestamps, np.float64),
+            is_keyframe=is_kf,
+            point_frame=np.concatenate(self.p_frame),
+            point_track=self.points.resolve(np.concatenate(self.p_track)),
+            point_uv=np.concatenate(self.p_uv).reshape(-1, 2),
+            line_frame=line_frame,
+            line_track=self.lines.resolve(np.concatenate(self.l_track)),
+            line_xy=line_xy,
+            line_vp=line_vp,
+            vp_dirs_c=vp_dirs,
+            vertical_vp=vertical_vp,
+            point_desc_row=_cat(self.pd_row, np.int64, (0,)),
+            point_desc=_cat(self.pd_desc, np.uint8, (0, 32)),
+            line_desc_row=_cat(self.ld_row, np.int64, (0,)),
+            line_desc=_cat(self.ld_desc, np.uint8, (0, 32)),
+            skipped_frames=np.array(self.skipped, np.int64),
         )
-    F = len(frame_index)
-    line_frame = np.concatenate(l_frame)
-    line_xy = np.concatenate(l_xy).reshape(-1, 4)
-    t8 = time.perf_counter()
-    line_vp, vp_dirs, vertical_vp = _vanishing(
-        line_frame, line_xy, F, und.undistorted_camera.K, config, stats
-    )
-    sec["vp"] += time.perf_counter() - t8
-
-    tracks = Tracks(
-        camera=und.undistorted_camera,
-        frame_index=np.array(frame_index, np.int64),
-        timestamp=np.array(timestamps, np.float64),
-        is_keyframe=np.array(is_kf, bool),
-        point_frame=np.concatenate(p_frame),
-        point_track=points.resolve(np.concatenate(p_track)),
-        point_uv=np.concatenate(p_uv).reshape(-1, 2),
-        line_frame=line_frame,
-        line_track=lines.resolve(np.concatenate(l_track)),
-        line_xy=line_xy,
-        line_vp=line_vp,
-        vp_dirs_c=vp_dirs,
-        vertical_vp=vertical_vp,
-        point_desc_row=_cat(pd_row, np.int64, (0,)),
-        point_desc=_cat(pd_desc, np.uint8, (0, 32)),
-        line_desc_row=_cat(ld_row, np.int64, (0,)),
-        line_desc=_cat(ld_desc, np.uint8, (0, 32)),
-        skipped_frames=np.array(skipped, np.int64),
-    )
-    tracks.validate()
-    stats.frames = F
-    stats.skipped = len(skipped)
-    stats.keyframes = int(tracks.is_keyframe.sum())
-    stats.points_per_frame = len(tracks.point_frame) / F
-    stats.segments_per_frame = len(tracks.line_frame) / F
-    stats.wall_seconds = time.perf_counter() - wall0
-    log.info(
-        "%s: %d frames (%d skipped), %d keyframes, %.0f points and %.0f segments per frame",
-        recording.path,
-        F,
-        len(skipped),
-        stats.keyframes,
-        stats.points_per_frame,
-        stats.segments_per_frame,
-    )
-    return tracks
+        tracks.validate()
+        stats.frames = F
+        stats.skipped = len(self.skipped)
+        stats.keyframes = int(is_kf.sum())
+        stats.points_per_frame = len(tracks.point_frame) / F
+        stats.segments_per_frame = len(tracks.line_frame) / F
+        log.info(
+            "%s: %d frames (%d skipped), %d keyframes, %.0f points and %.0f segments per frame",
+            rec.path,
+            F,
+            len(self.skipped),
+            stats.keyframes,
+            stats.points_per_frame,
+            stats.segments_per_frame,
+        )
+        return tracks
 
 
 def _positions(all_ids: np.ndarray, some: np.ndarray) -> np.ndarray:
@@ -244,12 +296,13 @@ def _cat(parts: list[np.ndarray], dtype: type, empty_shape: tuple[int, ...]) -> 
 def _vanishing(
     line_frame: np.ndarray,
     line_xy: np.ndarray,
-    n_frames: int,
+    is_keyframe: np.ndarray,
     K: np.ndarray,
     config: FrontendConfig,
     stats: FrontendStats,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-frame VPs and labels: vertical from the first frames, then tracked. (Kl,), (F, V, 3), (F,)."""
+    n_frames = len(is_keyframe)
     labels = np.full(len(line_frame), -1, np.int64)
     if not config.vanishing:
         stats.vertical_source = "off"
@@ -264,14 +317,21 @@ def _vanishing(
         log.warning("vanishing points: %s; estimating each frame without a vertical prior", exc)
         stats.vertical_source = "per-frame"
     results: list = [None] * n_frames
+    stride = max(1, config.vp_stride)
+    last = None
     for f in range(n_frames):
+        if last is not None and f % stride and not is_keyframe[f]:
+            # between estimates: the last directions, this frame's segments classified against them
+            labels[bounds[f] : bounds[f + 1]] = classify_segments(per_frame[f], K, last.dirs_c, config.vp)
+            results[f] = last
+            continue
         try:
             res = estimate_frame(per_frame[f], K, vertical, config.vp)
         except GeometryError as exc:
             log.debug("frame row %d: no vanishing directions (%s)", f, exc)
             stats.vp_failures += 1
             continue
-        results[f] = res
+        results[f] = last = res
         labels[bounds[f] : bounds[f + 1]] = res.labels
         if vertical is not None:
             vertical = update_vertical(vertical, res.vertical_c, None, config.vp)
