@@ -169,6 +169,20 @@ def test_temporary_vp_and_orthonormal_lines_converge(truth):
     assert err["ate_rmse"] < NOISE_FREE["ate_rmse"] and err["line_angle_deg"] < 0.5
 
 
+def test_two_parameter_baseline_holds_directions(truth):
+    m = perturb(truth, **START)
+    res = global_ba(m, _cfg(structural_lines="fixed_direction"))
+    anch = np.flatnonzero(m.lines.state == LineState.ANCHORED)
+    assert (
+        res.n_variables["axes"] == 0 and res.line_params["anchored"] == 2 * res.n_variables["lines_anchored"]
+    )
+    d = res.map.lines.endpoints_w[anch, 1] - res.map.lines.endpoints_w[anch, 0]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    axis = m.axes.directions[np.argmax(m.lines.axis_weights[anch], axis=1)]
+    np.testing.assert_allclose(np.abs(np.sum(d * axis, 1)), 1.0, atol=1e-9)  # directions held at the axes
+    assert res.final_cost < 0.2 * res.initial_cost
+
+
 def test_fixed_poses_optimise_structure_only(truth):
     m = perturb(truth, point_sigma=0.05, line_sigma=0.05, line_angle_deg=2.0, axis_deg=1.0)
     res = global_ba(m, _cfg(optimize_poses=False))

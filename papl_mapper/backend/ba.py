@@ -24,6 +24,7 @@ from papl_mapper.backend.config import BAConfig
 from papl_mapper.backend.factors import (
     AX,
     D,
+    F,
     P,
     R,
     U,
@@ -32,7 +33,7 @@ from papl_mapper.backend.factors import (
     axis_prior_factor,
     scale_prior_factor,
 )
-from papl_mapper.backend.linebatch import LineBatch
+from papl_mapper.backend.linebatch import KIND_FIXDIR, LineBatch
 from papl_mapper.backend.problem import KIND_ANCHORED, KIND_ORTHO, KIND_TVP, LineGroup, Problem, build_problem
 from papl_mapper.errors import GeometryError, OptimizationError
 from papl_mapper.map import Map
@@ -149,8 +150,12 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
 
     batches = {}
     for kind, grp in pb.lines.items():
+        if kind == KIND_ANCHORED and config.structural_lines == KIND_FIXDIR:
+            kind = KIND_FIXDIR
         for i in range(len(grp)):
-            if kind == KIND_ORTHO:
+            if kind == KIND_FIXDIR:
+                values.insert(F(i), np.zeros(2))
+            elif kind == KIND_ORTHO:
                 Urot, phi = geo.ortho_from_plucker(grp.L0[i])
                 values.insert(U(i), gtsam.Rot3(Urot))
                 values.insert(W(i), np.array([phi]))
@@ -189,7 +194,7 @@ class _State:
     inv_depth: dict[str, np.ndarray]  # kind -> (n,) inverse depths (anchored and temporary-VP)
 
 
-def _state(m: Map, pb: Problem, values: gtsam.Values) -> _State:
+def _state(m: Map, pb: Problem, values: gtsam.Values, batches: dict | None = None) -> _State:
     T = m.keyframes.T_wc.copy()
     for i in np.flatnonzero(pb.kf_in):
         T[i] = values.atPose3(X(i)).matrix()
@@ -201,7 +206,11 @@ def _state(m: Map, pb: Problem, values: gtsam.Values) -> _State:
     lines, inv = {}, {}
     for kind, grp in pb.lines.items():
         n = len(grp)
-        if kind == KIND_ORTHO:
+        if batches and KIND_FIXDIR in batches and kind == KIND_ANCHORED:
+            ab = np.array([values.atVector(F(i)) for i in range(n)]).reshape(n, 2)
+            L, _ = batches[KIND_FIXDIR].lines_from(ab, np.arange(n))
+            inv[kind], _ = geo.ray_inverse_depth(grp.bearing, T[grp.ref_kf], L)
+        elif kind == KIND_ORTHO:
             L = [
                 geo.plucker_from_ortho(values.atRot3(U(i)).matrix(), np.asarray(values.atVector(W(i))[0]))
                 for i in range(n)
@@ -242,7 +251,7 @@ def _rms(m: Map, pb: Problem, st: _State) -> dict[str, float]:
 def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0: float) -> BAResult:
     g = _build_graph(m, pb, config)
     setup_s = time.perf_counter() - t0
-    init_state = _state(m, pb, g.values)
+    init_state = _state(m, pb, g.values, g.batches)
     initial_rms = _rms(m, pb, init_state)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
@@ -288,9 +297,12 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
     lin = g.graph.linearize(values)
     linearize_s = time.perf_counter() - tl
     ts = time.perf_counter()
-    lin.optimize()
-    solve_s = time.perf_counter() - ts
-    st = _state(m, pb, values)
+    try:
+        lin.optimize()
+        solve_s = time.perf_counter() - ts
+    except RuntimeError:  # hard-constraint (fixed pose) factors do not solve by Cholesky: no figure
+        solve_s = float("nan")
+    st = _state(m, pb, values, g.batches)
     final_rms = _rms(m, pb, st)
     out = _write_back(m, pb, st)
     _check_finite(out, pb)
@@ -319,7 +331,11 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
             **{f"lines_{k}": len(v.obs_kf) for k, v in pb.lines.items()},
         },
         line_params={
-            KIND_ANCHORED: n_lines[KIND_ANCHORED] + 2 * n_axes_var,
+            KIND_ANCHORED: (
+                2 * n_lines[KIND_ANCHORED]
+                if config.structural_lines == KIND_FIXDIR
+                else n_lines[KIND_ANCHORED] + 2 * n_axes_var
+            ),
             KIND_TVP: 3 * n_lines[KIND_TVP],
             KIND_ORTHO: 4 * n_lines[KIND_ORTHO],
         },

@@ -38,6 +38,9 @@ class BAConfig:
     """Line observations whose 3D line is within this angle of the viewing ray are dropped."""
     line_factor: Literal["track", "observation"] = "track"
     """One custom factor per line track (vectorised) or one per observation (more Python calls)."""
+    structural_lines: Literal["anchored", "fixed_direction"] = "anchored"
+    """How ANCHORED lines are optimised: the paper's 3-parameter form (shared axis + inverse depth), or the
+    2-parameter baseline of Xu et al. 2022 (direction held at its axis, 2-dof position; for comparisons)."""
     optimize_poses: bool = True
     """False holds every keyframe pose at its value (e.g. the fixed-pose experiment)."""
     optimize_axes: bool = True

@@ -41,6 +41,11 @@ def D(i: int) -> int:
     return gtsam.symbol("d", int(i))
 
 
+def F(i: int) -> int:
+    """Key of the 2-dof position (Vector2) of fixed-direction (2-parameter baseline) line i."""
+    return gtsam.symbol("f", int(i))
+
+
 def U(i: int) -> int:
     """Key of orthonormal line i's U (Rot3)."""
     return gtsam.symbol("u", int(i))
@@ -68,7 +73,7 @@ def huber_sqrt_weight(e: np.ndarray, k: float) -> np.ndarray:
 def _dim(key: int) -> int:
     """Tangent dimension of a variable, from its key's symbol character."""
     c = chr(gtsam.Symbol(key).chr())
-    return {"x": 6, "r": 1, "s": 1, "w": 1, "a": 2, "d": 2, "u": 3}[c]
+    return {"x": 6, "r": 1, "s": 1, "w": 1, "a": 2, "d": 2, "u": 3, "f": 2}[c]
 
 
 def axis_prior_factor(axis: int, v0: np.ndarray, sigma_rad: float) -> gtsam.CustomFactor:

@@ -19,10 +19,11 @@ import gtsam
 import numpy as np
 
 from papl_mapper import geometry as geo
-from papl_mapper.backend.factors import AX, D, R, U, W, X, huber_cost_residual, huber_sqrt_weight
+from papl_mapper.backend.factors import AX, D, F, R, U, W, X, huber_cost_residual, huber_sqrt_weight
 from papl_mapper.backend.problem import KIND_ANCHORED, KIND_ORTHO, KIND_TVP, LineGroup
 
-_POSE, _VEC, _UNIT, _ROT = 0, 1, 2, 3
+_POSE, _VEC, _UNIT, _ROT, _VEC2 = 0, 1, 2, 3, 4
+KIND_FIXDIR = "fixed_direction"  # the 2-parameter baseline: L = (P x d, d), P = P0 + B(d) (a, b)
 
 
 class LineBatch:
@@ -45,6 +46,9 @@ class LineBatch:
         self.T_const, self.pose_var = T_const, pose_var
         self.axis_dirs, self.axis_var = axis_dirs, axis_var
         self.sigma, self.k = sigma_px, huber_k
+        if kind == KIND_FIXDIR:  # direction (its axis at the start) and reference point per line, held fixed
+            self.P0, self.d = geo.line_point_dir(grp.L0)
+            self.Bd = geo.tangent_basis(self.d)
         self.snap: dict | None = None
         self.has_jac = False
         self.n_evaluations = 0
@@ -76,13 +80,16 @@ class LineBatch:
                 if kind == KIND_ORTHO:
                     c0, c1 = add(U(i), (_ROT, i)), add(W(i), (_VEC, i))
                     c_ax = {-1: c1}
+                elif kind == KIND_FIXDIR:
+                    c0 = add(F(i), (_VEC2, i))
+                    c_ax = {}
                 else:
                     c0 = add(R(kind, i), (_VEC, i))
                     if kind == KIND_TVP:
                         c_ax = {-1: add(D(i), (_UNIT, i))}
                     else:
                         c_ax = {int(a): add(AX(a), (_UNIT, int(a))) for a in axes if self.axis_var[a]}
-                ref = int(grp.ref_kf[i])
+                ref = int(grp.ref_kf[i]) if kind != KIND_FIXDIR else -1
                 c_ref = add(X(ref), (_POSE, ref)) if ref >= 0 and self.pose_var[ref] else -1
                 c_obs = [
                     add(X(grp.obs_kf[o]), (_POSE, int(grp.obs_kf[o]))) if self.pose_var[grp.obs_kf[o]] else -1
@@ -119,7 +126,7 @@ class LineBatch:
         self.u_w = np.array(u_w, np.float64)
         self.u_row = np.array(u_row, np.int64)
         self.buffer = np.zeros(total)
-        d0, d1 = (3, 1) if kind == KIND_ORTHO else (1, 2)
+        d0, d1 = {KIND_ORTHO: (3, 1), KIND_FIXDIR: (2, 1)}.get(kind, (1, 2))
         self._idx = {
             name: _block_index(np.array(offs[name], np.int64), self.u_row, dim)
             for name, dim in (("p0", d0), ("p1", d1), ("ref", 6), ("obs", 6))
@@ -167,6 +174,9 @@ class LineBatch:
             elif code == _VEC:
                 if values.atVector(key)[0] != snap["s"][idx]:
                     return False
+            elif code == _VEC2:
+                if not np.array_equal(values.atVector(key), snap["ab"][idx]):
+                    return False
             elif code == _UNIT:
                 if not np.array_equal(values.atUnit3(key).point3(), snap["v"][idx]):
                     return False
@@ -183,6 +193,9 @@ class LineBatch:
         for i in np.flatnonzero(self.pose_var):
             T[i] = values.atPose3(X(i)).matrix()
         snap: dict = {"T": T}
+        if kind == KIND_FIXDIR:
+            snap["ab"] = np.array([values.atVector(F(i)) for i in range(n)]).reshape(n, 2)
+            return snap
         if kind == KIND_ORTHO:
             snap["U"] = np.array([values.atRot3(U(i)).matrix() for i in range(n)]).reshape(n, 3, 3)
             snap["s"] = np.array([values.atVector(W(i))[0] for i in range(n)])
@@ -211,7 +224,9 @@ class LineBatch:
         grp, kind, K = self.grp, self.kind, self.K
         line, obs = self.u_line, self.u_obs
         T = snap["T"]
-        if kind == KIND_ORTHO:
+        if kind == KIND_FIXDIR:
+            L, J_par = self.lines_from(snap["ab"], line, jac)
+        elif kind == KIND_ORTHO:
             Uu, phi = snap["U"][line], snap["s"][line]
             L = geo.plucker_from_ortho(Uu, phi)
             J_par = geo.ortho_jacobian(Uu, phi) if jac else None
@@ -241,7 +256,9 @@ class LineBatch:
         J_eL = J_e @ J_L  # (U, 2, 6)
         buf = self.buffer
         buf[:] = 0.0
-        if kind == KIND_ORTHO:
+        if kind == KIND_FIXDIR:
+            blocks = {"p0": J_eL @ J_par}
+        elif kind == KIND_ORTHO:
             blocks = {"p0": J_eL @ J_par[..., :3], "p1": J_eL @ J_par[..., 3:]}
         else:
             _, J_v, J_r, J_ref = out
@@ -249,6 +266,8 @@ class LineBatch:
             blocks = {"p0": (J_eL @ J_r[..., None]), "p1": J_eL @ (J_v @ Bu), "ref": J_eL @ J_ref}
         blocks["obs"] = J_e @ J_xc
         for name in ("p0", "p1", "obs"):
+            if name not in blocks:
+                continue
             sel, idx = self._idx[name]
             if len(sel):
                 buf[idx] = blocks[name][sel]
@@ -257,6 +276,17 @@ class LineBatch:
             if len(sel):
                 np.add.at(buf, idx, blocks["ref"][sel])
         self.snap, self.has_jac = snap, True
+
+    def lines_from(self, ab: np.ndarray, line: np.ndarray, jac: bool = False):
+        """Fixed-direction lines (..., 6) for positions ab (n, 2) at rows `line`, and dL/dab (..., 6, 2)."""
+        P = self.P0[line] + np.einsum("nij,nj->ni", self.Bd[line], ab[line])
+        d = self.d[line]
+        L = np.concatenate([np.cross(P, d), d], -1)
+        if not jac:
+            return L, None
+        J = np.zeros(L.shape + (2,))
+        J[..., :3, :] = -geo.skew(d) @ self.Bd[line]
+        return L, J
 
 
 class _KeyList:
@@ -284,4 +314,4 @@ def _block_index(off: np.ndarray, row: np.ndarray, dim: int) -> tuple[np.ndarray
 
 def _dim_of(kind: str, key: int) -> int:
     c = chr(gtsam.Symbol(key).chr())
-    return {"x": 6, "r": 1, "s": 1, "w": 1, "a": 2, "d": 2, "u": 3}[c]
+    return {"x": 6, "r": 1, "s": 1, "w": 1, "a": 2, "d": 2, "u": 3, "f": 2}[c]

@@ -164,7 +164,7 @@ def build_problem(m: Map, config: BAConfig, window: np.ndarray | None = None) ->
             config.min_lines_per_axis,
         )
         dropped["axes_held_fixed"] = int(few.sum())
-    axis_var = axis_used & ~few & config.optimize_axes
+    axis_var = axis_used & ~few & config.optimize_axes & (config.structural_lines == "anchored")
 
     return Problem(
         kf_in=kf_in,

@@ -27,6 +27,7 @@ from papl_mapper.geometry.lines import (
     plucker_to_world,
     project_line,
     projected_line_norm,
+    ray_inverse_depth,
     sphere_retract,
     tangent_basis,
 )
@@ -76,6 +77,7 @@ __all__ = [
     "project_line",
     "project_points",
     "projected_line_norm",
+    "ray_inverse_depth",
     "retract",
     "rotation_angle_deg",
     "skew",

@@ -262,6 +262,13 @@ def anchor_from_observation(
     mid = (obs_xy[..., :2] + obs_xy[..., 2:]) / 2.0
     hom = np.concatenate([mid, np.ones(mid.shape[:-1] + (1,))], -1)
     b = hom @ np.linalg.inv(K).T
+    r, sin = ray_inverse_depth(b, T_wr, L_w)
+    return b, r, sin
+
+
+def ray_inverse_depth(b: np.ndarray, T_wr: np.ndarray, L_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse depth r (...,) of the point of the ray T_wr (t b), t > 0, closest to the line L_w, and the
+    sine of the ray-line angle. b (..., 3) has z = 1 in the camera, so the point's depth is t."""
     P0, d = line_point_dir(L_w)
     bw = np.einsum("...ij,...j->...i", T_wr[..., :3, :3], b)
     w0 = T_wr[..., :3, 3] - P0
@@ -274,7 +281,7 @@ def anchor_from_observation(
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (bb * e - dd) / den
         r = 1.0 / t
-    return b, r, sin
+    return r, sin
 
 
 def anchored_plucker(
