@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from papl_mapper.frontend.gt import assign_to_gt
+from papl_mapper.frontend.gt import covered_fraction as gt_covered
 from papl_mapper.map import Camera
 
 TEX_RES = 0.01  # metres per texel
@@ -204,39 +206,13 @@ def walk_poses(n: int, speed_m: float = 0.03, yaw_rate_deg: float = 0.3) -> list
 
 
 def segment_match(det: np.ndarray, gt: np.ndarray, dist_px: float = 3.0, angle_deg: float = 3.0):
-    """For each detection the GT row it lies on (angle, endpoint distance to the GT segment), or -1."""
-    out = np.full(len(det), -1, np.int64)
-    if len(gt) == 0 or len(det) == 0:
-        return out
-    a, b = gt[:, :2], gt[:, 2:]
-    L = np.linalg.norm(b - a, axis=1)
-    ug = (b - a) / L[:, None]  # (G, 2)
-    dd = det[:, 2:] - det[:, :2]
-    ud = dd / np.maximum(np.linalg.norm(dd, axis=1), 1e-9)[:, None]
-    cos = np.abs(ud @ ug.T)  # (D, G)
-    dmax = np.zeros((len(det), len(gt)))
-    for p in (det[:, :2], det[:, 2:]):
-        r = p[:, None, :] - a[None]  # (D, G, 2)
-        t = np.clip(np.einsum("dgk,gk->dg", r, ug), 0, L[None])
-        dmax = np.maximum(dmax, np.linalg.norm(r - t[..., None] * ug[None], axis=2))
-    ok = (cos >= np.cos(np.radians(angle_deg))) & (dmax <= dist_px)
-    dmax = np.where(ok, dmax, np.inf)
-    best = np.argmin(dmax, axis=1)
-    has = np.isfinite(dmax[np.arange(len(det)), best])
-    out[has] = best[has]
-    return out
+    """For each detection the GT row it lies on, or -1 (see papl_mapper.frontend.gt)."""
+    return assign_to_gt(det, gt, dist_px, angle_deg)
 
 
 def covered_fraction(det: np.ndarray, gt_seg: np.ndarray, match_rows: np.ndarray, g: int) -> float:
     """Fraction of GT segment g covered by the detections matched to it."""
-    a, b = gt_seg[g, :2], gt_seg[g, 2:]
-    L = np.linalg.norm(b - a)
-    u = (b - a) / L
-    cover = np.zeros(int(L) + 1, bool)
-    for i in np.flatnonzero(match_rows == g):
-        t = sorted([float((det[i, :2] - a) @ u), float((det[i, 2:] - a) @ u)])
-        cover[max(0, int(t[0])) : max(0, int(t[1])) + 1] = True
-    return float(cover.mean())
+    return float(gt_covered(det, gt_seg, match_rows)[g])
 
 
 def test_renderer_projects_panel_edges_onto_intensity_steps():
