@@ -592,18 +592,25 @@ def test_unknown_suffix_lists_supported(kmap: Map, tmp_path: Path):
     assert not list(tmp_path.iterdir())
 
 
-def test_unwritable_path(kmap: Map, tmp_path: Path):
+def test_unwritable_path(kmap: Map, tmp_path: Path, monkeypatch):
     with pytest.raises(InputError, match="does not exist"):
         export(kmap, tmp_path / "missing" / "m.ply")
     (tmp_path / "dir.ply").mkdir()
     with pytest.raises(InputError, match="is a folder"):
         export(kmap, tmp_path / "dir.ply")
-    if os.geteuid() != 0:  # root writes anywhere
-        ro = tmp_path / "ro"
-        ro.mkdir()
-        ro.chmod(0o500)
-        with pytest.raises(InputError, match="cannot write"):
-            export(kmap, ro / "m.ply")
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    if os.geteuid() == 0:  # root writes anywhere: make the folder refuse the temporary file instead
+        import papl_mapper.exporters.registry as registry
+
+        def refuse(*a, **k):
+            raise PermissionError(13, "Permission denied")
+
+        monkeypatch.setattr(registry.tempfile, "mkstemp", refuse)
+    with pytest.raises(InputError, match="cannot write in .*Permission denied"):
+        export(kmap, ro / "m.ply")
+    assert not list(ro.iterdir())
 
 
 @pytest.mark.parametrize("suffix", supported_suffixes())
@@ -633,6 +640,14 @@ def test_non_finite_coordinates_refused_with_ids(suffix: str, kmap: Map, tmp_pat
     with pytest.raises(MapFormatError, match=rf"NaN or infinite.*\b{bad}\b"):
         export(m, tmp_path / f"n{suffix}")
     assert not [p for p in tmp_path.rglob("*") if p.is_file()]
+
+
+def test_non_finite_points_refused_with_ids(tmp_path: Path):
+    m = known_map()
+    m.points.xyz[[3, 17]] = [np.nan, np.inf, 0.0]
+    with pytest.raises(MapFormatError, match=rf"points.xyz.*ids \[{m.points.ids[3]}, {m.points.ids[17]}\]"):
+        export(m, tmp_path / "p.glb")
+    export(m, tmp_path / "p.glb", parts=("lines",))  # not exported, so not in the way
 
 
 def test_existing_output_is_replaced_atomically(kmap: Map, tmp_path: Path, monkeypatch):
