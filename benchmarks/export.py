@@ -105,6 +105,7 @@ def main() -> int:
         args.formats.split(",") if args.formats else [s for s in supported_suffixes() if s not in ALIASES]
     )
     rows = {}
+    load_start = round(os.getloadavg()[0], 2)
     with tempfile.TemporaryDirectory(prefix="papl-bench-export-") as tmp:
         map_path = Path(tmp) / "bench.papl"
         t0 = time.perf_counter()
@@ -161,8 +162,10 @@ def main() -> int:
         "notes": (
             "seconds: export() wall time in a fresh subprocess after the map is loaded (selection, checks, "
             "encoding, atomic write with fsync). peak_rss_mb: VmHWM of that process, map included; "
-            "map_loaded_rss_mb: VmHWM just after loading the map. Other helpers shared the 2 cores."
+            "map_loaded_rss_mb: VmHWM just after loading the map. Other jobs shared the 2 cores (see the "
+            "load average), so times are upper bounds."
         ),
+        "load_average_1min_start_end": [load_start, round(os.getloadavg()[0], 2)],
         "machine": {
             "platform": platform.platform(),
             "python": platform.python_version(),
