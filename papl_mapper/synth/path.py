@@ -15,7 +15,8 @@ import numpy as np
 from papl_mapper.synth.scenes import Scene
 
 CORNER_CUT_M = 0.8  # corners are rounded within this distance of a waypoint
-HEADING_SMOOTH_M = 0.6  # heading looks along the path over +- this distance
+HEADING_SMOOTH_M = 0.3  # heading looks from this far behind on the path...
+LOOK_AHEAD_M = 1.5  # ...to this far ahead, so the walker looks into a corner before reaching it
 LOOP_FRACTION = 0.75  # walk whole loops when the distance is at least this part of one
 
 
@@ -52,8 +53,9 @@ class _Loop:
         s = np.mod(s, self.length)
         return np.stack([np.interp(s, self.s, self.pts[:, k]) for k in (0, 1)], axis=-1)
 
-    def heading(self, s: np.ndarray, window: float = HEADING_SMOOTH_M) -> np.ndarray:
-        d = self.at(s + window) - self.at(s - window)
+    def heading(self, s: np.ndarray, direction: float = 1.0) -> np.ndarray:
+        """Yaw looking from a little behind `s` to LOOK_AHEAD_M ahead (walking towards +s or -s)."""
+        d = self.at(s + direction * LOOK_AHEAD_M) - self.at(s - direction * HEADING_SMOOTH_M)
         return np.arctan2(d[:, 1], d[:, 0])
 
 
@@ -86,7 +88,9 @@ def walkthrough(
         s = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / fps)])
         turn = np.clip((t - (T / 2 - tau)) / (2 * tau), 0.0, 1.0)
         turn = turn * turn * (3 - 2 * turn)  # smoothstep
-        yaw = loop.heading(s) + math.pi * turn
+        yaw_out = loop.heading(s, 1.0)
+        yaw_back = yaw_out + np.mod(loop.heading(s, -1.0) - yaw_out, 2 * math.pi)  # turning left
+        yaw = yaw_out + turn * (yaw_back - yaw_out)
     xy = loop.at(s)
     lateral = np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
     xy = xy + lateral * (0.05 * _smooth_noise(rng, t, 0.1, 0.4))[:, None]

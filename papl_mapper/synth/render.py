@@ -33,11 +33,12 @@ def make_texture(mat: Material, texels_per_m: float, period: int = TEXTURE_PERIO
         return out / (out.std() + 1e-12)
 
     blob_px = max(mat.blob_scale_m * texels_per_m, 1.0)
-    blobs = np.tanh(2.5 * band(blob_px / 2))
+    blobs = np.tanh(4.0 * band(blob_px / 2))
     detail = band(max(blob_px / 8, 0.7))
+    specks = np.clip(band(1.5) - 2.3, 0, 0.5) * 2  # small sharp spots: corners at close range
     tint = np.stack([band(blob_px) for _ in range(3)], axis=-1)
     base = np.asarray(mat.color_bgr, np.float32)
-    lum = 1 + mat.contrast * (0.75 * blobs + 0.25 * detail)
+    lum = 1 + mat.contrast * (0.7 * blobs + 0.25 * detail - 1.5 * specks)
     tex = base * lum[..., None] * (1 + 0.08 * mat.contrast * tint)
     return np.clip(tex, 0, 1.5).astype(np.float32)
 
@@ -75,13 +76,9 @@ class Renderer:
         self.emissive = np.array([m.emissive for m in scene.materials])
         qc = scene.quad_corners
         self.normals = scene.normals
-        self.tex_ab = np.stack(
-            [
-                ((qc - scene.tex_origin[:, None]) * scene.tex_u[:, None]).sum(-1),
-                ((qc - scene.tex_origin[:, None]) * scene.tex_v[:, None]).sum(-1),
-            ],
-            axis=-1,
-        )  # (Q, 4, 2) metres in each quad's texture frame
+        self.tile_corners, self.tile_parent, self.tile_range = _tiles(scene, self.ppm)
+        self.tile_ab = _tex_ab(self.tile_corners, scene, self.tile_parent)
+        self.tex_ab = _tex_ab(qc, scene, np.arange(len(qc)))  # (Q, 4, 2) metres in the texture frame
         self.background = np.clip(np.asarray(scene.background_bgr) * 255 / 1.5, 0, 255).astype(np.uint8)
 
     def render(self, T_wc: np.ndarray, with_depth: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
@@ -159,20 +156,52 @@ class Renderer:
             invz = invz[by : by + bh, bx : bx + bw]
             zb = zb[by : by + bh, bx : bx + bw]
             x0, y0, w, h = x0 + bx, y0 + by, bw, bh
-            M, level = self._texture_map(q, R, t, pc, ab, x0, y0)
-            tex = self.pyramids[sc.quad_material[q]][level]
-            warped = cv2.warpPerspective(
-                tex, M, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_WRAP
-            )
+            warped = self._texture(q, R, t, pc, ab, x0, y0, w, h)
             if shade[q] != 1.0:
                 warped = cv2.convertScaleAbs(warped, alpha=float(shade[q]))
             cv2.copyTo(warped, m, img[y0 : y0 + h, x0 : x0 + w])  # writes through the views
             cv2.copyTo(invz, m, zb)
         return img, zbuf
 
-    def _texture_map(self, q, R, t, pc, ab, x0, y0) -> tuple[np.ndarray, int]:
-        """Matrix from rect pixels to texels of the chosen mip level, and that level."""
+    def _texture(self, q, R, t, pc, ab, x0, y0, w, h) -> np.ndarray:
+        """(h, w, 3) uint8 texture of quad q over the pixel rect at (x0, y0), assembled from its tiles.
+
+        Tiles are drawn with masks grown by a pixel: the texture is continuous across them, and the
+        quad's own mask (not the tiles') decides coverage, so tile seams never open gaps.
+        """
+        first, count = self.tile_range[q]
+        mat = self.scene.quad_material[q]
+        if count == 1:
+            M, level = self._texture_map(first, R, t, pc, ab, x0, y0)
+            return _warp(self.pyramids[mat][level], M, w, h)
+        out = np.zeros((h, w, 3), np.uint8)
+        Pc = self.tile_corners[first : first + count] @ R.T + t
+        for k in range(count):
+            poly = _clip_near(Pc[k], self.tile_ab[first + k])
+            if poly is None:
+                continue
+            tpc, tab = poly
+            uv = tpc @ self.K.T
+            uv = uv[:, :2] / uv[:, 2:3]
+            tx0 = max(int(math.floor(uv[:, 0].min())) - 2, x0)
+            tx1 = min(int(math.ceil(uv[:, 0].max())) + 3, x0 + w)
+            ty0 = max(int(math.floor(uv[:, 1].min())) - 2, y0)
+            ty1 = min(int(math.ceil(uv[:, 1].max())) + 3, y0 + h)
+            if tx1 <= tx0 or ty1 <= ty0:
+                continue
+            mask = np.zeros((ty1 - ty0, tx1 - tx0), np.uint8)
+            pts = [np.round((uv - [tx0, ty0]) * 16).astype(np.int32)]
+            cv2.fillPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
+            cv2.polylines(mask, pts, True, 255, thickness=3, lineType=cv2.LINE_8, shift=4)
+            M, level = self._texture_map(first + k, R, t, tpc, tab, tx0, ty0)
+            tile = _warp(self.pyramids[mat][level], M, tx1 - tx0, ty1 - ty0)
+            cv2.copyTo(tile, mask, out[ty0 - y0 : ty1 - y0, tx0 - x0 : tx1 - x0])
+        return out
+
+    def _texture_map(self, k, R, t, pc, ab, x0, y0) -> tuple[np.ndarray, int]:
+        """Matrix from rect pixels to texels of tile k's mip level, and that level."""
         sc = self.scene
+        q = self.tile_parent[k]
         o = R @ sc.tex_origin[q] + t
         H_ab = self.K @ np.column_stack([R @ sc.tex_u[q], R @ sc.tex_v[q], o])  # metres (a, b) -> pixels
         zs = pc[:, 2]
@@ -189,6 +218,38 @@ class Renderer:
         A = np.array([[scale, 0, -half - off[0]], [0, scale, -half - off[1]], [0, 0, 1]])
         shift = np.array([[1.0, 0, x0], [0, 1, y0], [0, 0, 1]])
         return A @ np.linalg.inv(H_ab) @ shift, level
+
+
+def _tex_ab(corners: np.ndarray, scene: Scene, quad: np.ndarray) -> np.ndarray:
+    """(N, 4, 2) texture-frame coordinates in metres of corners (N, 4, 3) on quads `quad` (N,)."""
+    d = corners - scene.tex_origin[quad][:, None]
+    return np.stack(
+        [(d * scene.tex_u[quad][:, None]).sum(-1), (d * scene.tex_v[quad][:, None]).sum(-1)], axis=-1
+    )
+
+
+def _warp(tex: np.ndarray, M: np.ndarray, w: int, h: int) -> np.ndarray:
+    return cv2.warpPerspective(
+        tex, M, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_WRAP
+    )
+
+
+def _tiles(scene: Scene, texels_per_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cut quads into tiles spanning at most TEXTURE_PERIOD texels: corners (T, 4, 3), parent (T,),
+    and per quad its first tile and tile count (Q, 2)."""
+    corners, parent, ranges = [], [], []
+    for q, c in enumerate(scene.quad_corners):
+        u, v = c[1] - c[0], c[3] - c[0]
+        nu = max(1, math.ceil(np.linalg.norm(u) * texels_per_m / TEXTURE_PERIOD - 1e-9))
+        nv = max(1, math.ceil(np.linalg.norm(v) * texels_per_m / TEXTURE_PERIOD - 1e-9))
+        ranges.append((len(parent), nu * nv))
+        for i in range(nu):
+            for j in range(nv):
+                p = c[0] + u * (i / nu) + v * (j / nv)
+                du, dv = u / nu, v / nv
+                corners.append([p, p + du, p + du + dv, p + dv])
+                parent.append(q)
+    return np.array(corners), np.array(parent, np.int64), np.array(ranges, np.int64)
 
 
 def _clip_near(pc: np.ndarray, ab: np.ndarray):

@@ -55,7 +55,7 @@ class Scene:
     eye_height: float = 1.6
     background_bgr: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
-    texels_per_m: float = 256.0  # texture resolution; a quad tile spans at most TEXTURE_PERIOD texels
+    texels_per_m: float = 256.0  # texture resolution (the renderer tiles quads by TEXTURE_PERIOD)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -114,15 +114,17 @@ class Scene:
 
 
 class SceneBuilder:
-    """Collects quads, materials and GT segments; subdivides big quads into tiles for the renderer."""
+    """Collects quads, materials and GT segments of one scene."""
 
-    def __init__(self, name: str, axes: np.ndarray, axis_names: list[str], seed: int, max_tile: float = 2.0):
+    def __init__(
+        self, name: str, axes: np.ndarray, axis_names: list[str], seed: int, texels_per_m: float = 256.0
+    ):
         self.name = name
         self.axes = np.asarray(axes, float)
         self.axis_names = axis_names
         self.rng = np.random.default_rng(seed)
         self.seed = seed
-        self.max_tile = max_tile
+        self.texels_per_m = texels_per_m
         self.materials: list[Material] = []
         self._quads: list[tuple] = []
         self._segments: list[np.ndarray] = []
@@ -143,12 +145,7 @@ class SceneBuilder:
         lu, lv = np.linalg.norm(u), np.linalg.norm(v)
         tu, tv = u / lu, v / lv
         origin = p0 if tex_origin is None else np.asarray(tex_origin, float)
-        nu = max(1, math.ceil(lu / self.max_tile - 1e-9))
-        nv = max(1, math.ceil(lv / self.max_tile - 1e-9))
-        for i in range(nu):
-            for j in range(nv):
-                q0 = p0 + u * (i / nu) + v * (j / nv)
-                self._quads.append((q0, u / nu, v / nv, mat, origin, tu, tv))
+        self._quads.append((p0, u, v, mat, origin, tu, tv))
         edges = {"b": (p0, p0 + u), "r": (p0 + u, p0 + u + v), "t": (p0 + v, p0 + u + v), "l": (p0, p0 + v)}
         for key in segments:
             self.segment(*edges[key])
@@ -167,7 +164,7 @@ class SceneBuilder:
         q = self._quads
         corners = np.array([[p, p + u, p + u + v, p + v] for p, u, v, *_ in q])
         return Scene(
-            texels_per_m=TEXTURE_PERIOD / self.max_tile,
+            texels_per_m=self.texels_per_m,
             name=self.name,
             quad_corners=corners,
             quad_material=np.array([x[3] for x in q], np.int64),
@@ -222,7 +219,8 @@ def _wall(
     cuts = [0.0]
     for off, w, top in sorted(openings):
         cuts += [off, off + w]
-        b.quad(s + dh * off + Z * top, dh * w, Z * (height - top), mat, tex_origin=s)
+        # the lintel overlaps its neighbours by 2 cm (same plane and texture) so no seam can open
+        b.quad(s + dh * (off - 0.02) + Z * top, dh * (w + 0.04), Z * (height - top), mat, tex_origin=s)
         if opening_segments:
             b.segment(s + dh * off + Z * top, s + dh * (off + w) + Z * top)
             b.segment(s + dh * off, s + dh * off + Z * top)
@@ -275,7 +273,7 @@ def corridor(seed: int = 0) -> Scene:
     light = b.material("light", (0.97, 0.99, 1.0), 0.02, 0.5, emissive=True)
     poster = b.material("poster", (0.30, 0.35, 0.75), 0.45, 0.06)
     # block [-4, 4] x [-2, 2], corridor ring 2 m wide, outer walls at x = +-6, y = +-4
-    for x0, x1, y0, y1 in ((-6, 6, 2, 4), (-6, 6, -4, -2), (4, 6, -2, 2), (-6, -4, -2, 2)):
+    for x0, x1, y0, y1 in ((-6, 6, 2, 4), (-6, 6, -4, -2), (4, 6, -2.02, 2.02), (-6, -4, -2.02, 2.02)):
         b.quad([x0, y0, 0], [x1 - x0, 0, 0], [0, y1 - y0, 0], floor, tex_origin=[-6, -4, 0])
         b.quad([x0, y0, H], [0, y1 - y0, 0], [x1 - x0, 0, 0], ceil, tex_origin=[-6, -4, H])
     # inner block walls, seen from the corridor (left side when walking counter-clockwise around it)
@@ -351,7 +349,7 @@ def atlanta(seed: int = 0) -> Scene:
     yaws = (0.0, 35.0, 70.0)
     dirs = [Z] + [_hdir(y) for y in yaws] + [_hdir(y + 90) for y in yaws]
     names = ["vertical"] + [f"h{int(y)}" for y in yaws] + [f"h{int(y + 90)}" for y in yaws]
-    b = SceneBuilder("atlanta", dirs, names, seed, max_tile=4.0)
+    b = SceneBuilder("atlanta", dirs, names, seed, texels_per_m=128.0)
     rng = b.rng
     ground = b.material("ground", (0.42, 0.44, 0.45), 0.35, 0.10)
     facades = [
@@ -419,7 +417,7 @@ def atlanta(seed: int = 0) -> Scene:
 
 def garage(seed: int = 0) -> Scene:
     """Low-texture parking garage: plain walls, square pillars, painted bay lines, few corners."""
-    b = SceneBuilder("garage", [Z, [1, 0, 0], [0, 1, 0]], ["vertical", "x", "y"], seed, max_tile=3.0)
+    b = SceneBuilder("garage", [Z, [1, 0, 0], [0, 1, 0]], ["vertical", "x", "y"], seed, texels_per_m=170.0)
     H = 2.5
     wall = b.material("wall", (0.62, 0.63, 0.62), 0.04, 0.4)
     floor = b.material("floor", (0.40, 0.41, 0.41), 0.06, 0.3)
