@@ -17,6 +17,12 @@ from .text import format_rows
 _V = "v %.9g %.9g %.9g %.4g %.4g %.4g\n"
 
 
+def _v_constant(rgb: tuple[int, int, int]) -> str:
+    """A vertex row format with the group's constant colour written in (half the numbers to format)."""
+    r, g, b = (f"{c / 255.0:.4g}" for c in rgb)
+    return f"v %.9g %.9g %.9g {r} {g} {b}\n"
+
+
 def scene_to_obj(scene: ExportScene) -> bytes:
     out = [f"# papl-mapper map; units {scene.units}; up +Z\n".encode()]
     for a in scene.axis_info:
@@ -27,16 +33,16 @@ def scene_to_obj(scene: ExportScene) -> bytes:
         if g.key == "trajectory":
             continue
         n = len(g.ids)
-        rgb = np.broadcast_to(np.asarray(g.rgb) / 255.0, (2 * n, 3))
         out.append(f"o {g.key}\ng {g.key}\n".encode())
-        out.append(format_rows(_V, g.segments_w.reshape(-1, 3), rgb))
+        out.append(format_rows(_v_constant(g.rgb), g.segments_w.reshape(-1, 3)))
         first = base + 2 * np.arange(n, dtype=np.int64)
         out.append(format_rows("l %d %d\n", first, first + 1))
         base += 2 * n
     n = len(scene.trajectory_w)
     if n >= 2:
-        rgb = np.broadcast_to(np.asarray(TRAJECTORY_RGB) / 255.0, (n, 3))
-        out.append(b"o trajectory\ng trajectory\n" + format_rows(_V, scene.trajectory_w, rgb))
+        out.append(
+            b"o trajectory\ng trajectory\n" + format_rows(_v_constant(TRAJECTORY_RGB), scene.trajectory_w)
+        )
         out.append(("l " + " ".join(map(str, range(base, base + n))) + "\n").encode())
         base += n
     if len(scene.points_xyz):
