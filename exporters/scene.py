@@ -31,7 +31,7 @@ class ExportOptions:
     parts: tuple[str, ...] = ("lines", "points", "trajectory")
     """Which parts of the map to write: any of lines, points, trajectory, frusta."""
     min_observations: int = 0
-    """Leave out lines observed in fewer keyframes than this (0 keeps every line)."""
+    """Leave out lines with fewer 2D observations than this (one per keyframe; 0 keeps every line)."""
     min_axis_weight: float = 0.5
     """A line belongs to its best axis when anchored with at least this weight, else it is unanchored."""
     palette: str = "okabe-ito"
@@ -146,6 +146,7 @@ def prepare(m: Map, options: ExportOptions) -> ExportScene:
             keep &= observation_counts(lines.ids, lines.obs_ids[:, 0]) >= options.min_observations
         check_finite(lines.endpoints_w[keep], lines.ids[keep], "lines.endpoints_w")
     axis = lines.axis_of_line(options.min_axis_weight) if len(lines) else np.zeros(0, np.int64)
+    check_finite(m.axes.directions, np.arange(n_axes), "axes.directions")
     colors = axis_colors(n_axes, vertical, options.palette)
     names = axis_names(n_axes, vertical)
     # one stable sort by group key (axes 0..A-1, unanchored = A) instead of a mask per group

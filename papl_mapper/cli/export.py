@@ -26,7 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--parts",
         help="comma-separated parts: lines,points,trajectory,frusta (default lines,points,trajectory)",
     )
-    p.add_argument("--min-obs", type=int, help="leave out lines seen in fewer keyframes than this")
+    p.add_argument("--min-obs", type=int, help="leave out lines with fewer observations than this")
     p.add_argument("--palette", help="axis palette: okabe-ito (default, colour-blind safe) or vivid")
     p.add_argument("--ascii", action="store_true", help="PLY: write ASCII instead of binary")
     p.add_argument("--tube-radius", type=float, help="tubes: radius as a fraction of the scene diagonal")
