@@ -148,14 +148,20 @@ def export_colmap(m: Map, options: ExportOptions | None = None) -> dict[str, byt
             err = np.where(cnt > 0, np.bincount(prow, weights=e, minlength=n_pts) / np.maximum(cnt, 1), 0.0)
         by_pt = np.lexsort((point2d_idx, img, prow))
         tstarts = np.searchsorted(prow[by_pt], np.arange(n_pts + 1))
-        track_rows = _lines_of(format_rows("%d %d\n", img[by_pt], point2d_idx[by_pt]))
-        heads = _lines_of(
-            format_rows(
-                "%d %.17g %.17g %.17g %d %d %d %.9g\n", np.arange(1, n_pts + 1), pts.xyz, pts.color, err
-            )
-        )
-        rows = [b" ".join([heads[i], *track_rows[tstarts[i] : tstarts[i + 1]]]) for i in range(n_pts)]
-        points.append(b"\n".join(rows) + b"\n")
+        # rows without a per-point loop: each head starts with a newline, each track pair with a space,
+        # and one object array puts every point's pairs right after its head
+        tracks = _lines_of(format_rows(" %d %d\n", img[by_pt], point2d_idx[by_pt]))
+        head_format = "\n%d %.17g %.17g %.17g %d %d %d %.9g"
+        heads = format_rows(head_format + "\v", np.arange(1, n_pts + 1), pts.xyz, pts.color, err).split(
+            b"\v"
+        )[:-1]
+        tokens = np.empty(n_pts + len(tracks), dtype=object)
+        head_at = tstarts[:-1] + np.arange(n_pts)
+        is_head = np.zeros(len(tokens), bool)
+        is_head[head_at] = True
+        tokens[head_at] = heads
+        tokens[~is_head] = tracks
+        points.append(b"".join(tokens.tolist())[1:] + b"\n")
     return {"cameras.txt": cameras, "images.txt": b"".join(images), "points3D.txt": b"".join(points)}
 
 
