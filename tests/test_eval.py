@@ -383,6 +383,10 @@ def test_nearest_segment_distance_is_exact_on_dense_clutter():
         want = np.where(brute <= max_dist, brute, np.inf)
         np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
         np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], atol=1e-12)
+        levels = np.array([0.25, 0.5, 1.0]) * max_dist  # levels mode: every "<= level" answer exact
+        got = nearest_segment_distance(q, segs, max_dist, spacing, levels=levels)
+        for tau in levels:
+            np.testing.assert_array_equal(got <= tau, brute <= tau)
 
 
 def test_point_segment_distance_hand_values():
