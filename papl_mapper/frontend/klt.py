@@ -15,13 +15,13 @@ import numpy as np
 class FlowConfig:
     """Settings of the KLT tracker shared by points and line samples."""
 
-    win_size: int = 21
+    win_size: int = 15
     """Side of the LK window in pixels (odd)."""
     levels: int = 3
     """Pyramid levels above the full-resolution image."""
     fb_threshold_px: float = 1.0
     """Largest forward-backward round-trip error of a kept track."""
-    max_iterations: int = 20
+    max_iterations: int = 10
     """LK iterations per level."""
     epsilon: float = 0.03
     """LK convergence threshold in pixels."""

@@ -22,6 +22,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from papl_mapper.frontend.descriptors import match_descriptors
+
 log = logging.getLogger(__name__)
 
 
@@ -244,38 +246,6 @@ class LBD:
         return np.array([k.class_id for k in kls], np.int64), np.asarray(desc, np.uint8)
 
 
-def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distances (A, B) between rows of two uint8 descriptor arrays."""
-    if len(a) == 0 or len(b) == 0:
-        return np.zeros((len(a), len(b)), np.int64)
-    x = np.unpackbits(np.asarray(a, np.uint8), axis=1).astype(np.float32)
-    y = np.unpackbits(np.asarray(b, np.uint8), axis=1).astype(np.float32)
-    same = x @ y.T + (1 - x) @ (1 - y).T
-    return (x.shape[1] - same).astype(np.int64)
-
-
-def match_descriptors(
-    desc_a: np.ndarray, desc_b: np.ndarray, max_hamming: int, ratio: float, allowed: np.ndarray | None = None
-) -> np.ndarray:
-    """Mutual nearest neighbours passing a distance and a ratio test; (M, 2) rows (ia, ib).
-
-    `allowed` (A, B) bool restricts the candidates (a geometric gate).
-    """
-    ham = hamming(desc_a, desc_b).astype(np.float64)
-    if ham.size == 0:
-        return np.zeros((0, 2), np.int64)
-    if allowed is not None:
-        ham = np.where(allowed, ham, np.inf)
-    best_b = np.argmin(ham, axis=1)
-    best_a = np.argmin(ham, axis=0)
-    part = np.sort(ham, axis=1)
-    second = part[:, 1] if ham.shape[1] > 1 else np.full(len(ham), np.inf)
-    ia = np.arange(len(ham))
-    d = ham[ia, best_b]
-    ok = (d <= max_hamming) & (best_a[best_b] == ia) & (d <= ratio * second)
-    return np.stack([ia[ok], best_b[ok]], axis=1).astype(np.int64)
-
-
 def match_keyframe_lines(
     segs_a: np.ndarray,
     desc_a: np.ndarray,
@@ -422,9 +392,19 @@ class LineTracker:
         self._lost_desc = np.vstack([self._lost_desc, np.array([self._kf.pop(i)[1] for i in keep])])
         self._lost_at = np.concatenate([self._lost_at, np.full(len(keep), self.frame)])
 
-    def keyframe(self, gray: np.ndarray, lbd: LBD) -> tuple[np.ndarray, np.ndarray]:
-        """LBD of the live segments; re-associates young tracks with lost ones. Returns ids, (D, 32)."""
-        rows, desc = lbd.compute(gray, self.segs)
+    def keyframe(
+        self, gray: np.ndarray, lbd: LBD, scale_xy: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """LBD of the live segments; re-associates young tracks with lost ones. Returns ids, (D, 32).
+
+        scale_xy: size of `gray` over the size of the frame the segments were detected in (LBD on
+        a downscaled image is cheaper); None when they are the same.
+        """
+        segs = self.segs
+        if scale_xy is not None and np.any(np.asarray(scale_xy) != 1.0):
+            sx, sy = scale_xy
+            segs = (segs + 0.5) * np.array([sx, sy, sx, sy]) - 0.5
+        rows, desc = lbd.compute(gray, segs)
         if self.config.reassociate and len(rows):
             self._reassociate(rows, desc)
         ids = self.ids[rows]

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from papl_mapper.frontend.descriptors import hamming_pairs
 from papl_mapper.frontend.klt import FlowConfig, track_klt
 
 log = logging.getLogger(__name__)
@@ -165,18 +166,17 @@ class PointTracker:
         if not young.any() or len(lost.ids) == 0:
             return
         yr = np.flatnonzero(young)
-        # Hamming distances (Y, L) via unpacked bits
-        a = np.unpackbits(desc[yr], axis=1).astype(np.int16)
-        b = np.unpackbits(lost.desc, axis=1).astype(np.int16)
-        ham = a.shape[1] - (a @ b.T + (1 - a) @ (1 - b).T)
         dist = np.linalg.norm(self.uv[rows[yr]][:, None, :] - lost.uv[None, :, :], axis=2)
         born = np.array([self.born[int(self.ids[rows[y]])] for y in yr])
         # the lost track must end before the young one starts, so no frame sees both ids
         ok = (dist <= cfg.reassociate_radius_px) & (born[:, None] >= lost.lost_at[None, :])
-        ham = np.where(ok, ham, 10_000)
+        ham = np.full(ok.shape, 10_000, np.int64)
+        iy, il = np.nonzero(ok)
+        ham[iy, il] = hamming_pairs(desc[yr], lost.desc, iy, il)
         used_lost: set[int] = set()
-        order = np.argsort(ham.min(axis=1))
-        for y in order.tolist():
+        best_ham = ham.min(axis=1)
+        order = np.argsort(best_ham)
+        for y in order[best_ham[order] <= cfg.orb_max_hamming].tolist():
             cand = np.argsort(ham[y])
             best = int(cand[0])
             if ham[y, best] > cfg.orb_max_hamming or best in used_lost:

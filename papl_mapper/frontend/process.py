@@ -74,6 +74,9 @@ class FrontendConfig:
     """The vertical is initialised from the segments of this many first frames."""
     min_texture_std: float = 2.0
     """Frames whose gray-level standard deviation is below this are skipped as textureless."""
+    work_max_size: int = 640
+    """Point tracking, ORB and LBD run on the frame downscaled so its longer side is at most this
+    (coordinates are mapped back to full resolution); segments are detected at full resolution."""
     vp_stride: int = 1
     """Estimate vanishing directions on every n-th frame and on keyframes; frames between reuse the
     last estimate's directions and classify their own segments against them (1 = every frame)."""
@@ -145,7 +148,10 @@ class _Run:
         w, h = recording.width, recording.height
         self.recording, self.config, self.stats = recording, config, stats
         self.und = Undistorter(camera)
-        self.points = PointTracker(config.points, config.flow, w, h)
+        s = min(1.0, config.work_max_size / max(w, h))
+        self.work_size = (max(1, round(w * s)), max(1, round(h * s)))
+        self.work_scale = np.array([self.work_size[0] / w, self.work_size[1] / h])  # work px per full px
+        self.points = PointTracker(config.points, config.flow, *self.work_size)
         self.detector = SegmentDetector(config.lines)
         self.lines = LineTracker(config.lines)
         self.lbd = LBD()
@@ -153,6 +159,7 @@ class _Run:
         self.total = recording.expected_frames()
         self.done = 0
         self.prev_gray: np.ndarray | None = None
+        self.prev_small: np.ndarray | None = None
         self.frame_index: list[int] = []
         self.timestamps: list[float] = []
         self.is_kf: list[bool] = []
@@ -163,6 +170,10 @@ class _Run:
         self.n_points = self.n_lines = 0
         self._t_last = time.perf_counter()
 
+    def _to_full(self, uv: np.ndarray) -> np.ndarray:
+        """Work-image pixels (N, 2) -> full-resolution pixels (integer pixel centres)."""
+        return (np.asarray(uv, np.float64) + 0.5) / self.work_scale - 0.5
+
     def frame(self, frame: Frame, pool: ThreadPoolExecutor | None) -> str:
         """Process one decoded frame; returns a progress message."""
         sec = self.stats.seconds
@@ -170,17 +181,21 @@ class _Run:
         sec["decode"] += t1 - self._t_last  # waiting for the decoder thread
         self.done += 1
         gray = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+        small = gray
+        if self.work_size != (gray.shape[1], gray.shape[0]):
+            small = cv2.resize(gray, self.work_size, interpolation=cv2.INTER_AREA)
         t2 = time.perf_counter()
         sec["convert"] += t2 - t1
         if _is_textureless(gray, self.config.min_texture_std):
             self.skipped.append(frame.index)
-            self.prev_gray = None
+            self.prev_gray = self.prev_small = None
             self._t_last = time.perf_counter()
             return f"frame {frame.index}: skipped (no texture)"
         points, lines = self.points, self.lines
         restart = self.prev_gray is None
         pending = pool.submit(_timed, self.detector.detect, gray) if pool is not None else None
-        points.step(gray, self.prev_gray, force_detect=restart)
+        points.step(small, self.prev_small, force_detect=restart)
+        uv = self._to_full(points.uv)
         t4 = time.perf_counter()
         sec["points"] += t4 - t2
         segs, line_seconds = pending.result() if pending is not None else _timed(self.detector.detect, gray)
@@ -190,17 +205,17 @@ class _Run:
         if restart:
             lines.step(segs, None, None)
         else:
-            lines.step(segs, points.flow_from, points.flow_to)
+            lines.step(segs, self._to_full(points.flow_from), self._to_full(points.flow_to))
         t6 = time.perf_counter()
         sec["line_tracking"] += t6 - t5
-        kf = self.selector.update(points.ids, points.uv, force=restart)
+        kf = self.selector.update(points.ids, uv, force=restart)
         t7 = time.perf_counter()
         sec["keyframes"] += t7 - t6
         row = len(self.frame_index)
         if kf:
-            pids, pdesc = points.keyframe(gray)
-            self.selector.set_reference(points.ids, points.uv)
-            lids, ldesc = lines.keyframe(gray, self.lbd)
+            pids, pdesc = points.keyframe(small)
+            self.selector.set_reference(points.ids, uv)
+            lids, ldesc = lines.keyframe(small, self.lbd, self.work_scale)
             # descriptor rows: position of each described id among this frame's observations
             self.pd_row.append(self.n_points + _positions(points.ids, pids))
             self.pd_desc.append(pdesc)
@@ -214,13 +229,13 @@ class _Run:
         k, s = len(points.ids), len(lines.ids)
         self.p_frame.append(np.full(k, row, np.int64))
         self.p_track.append(points.ids.copy())
-        self.p_uv.append(self.und.points(points.uv))
+        self.p_uv.append(self.und.points(uv))
         self.l_frame.append(np.full(s, row, np.int64))
         self.l_track.append(lines.ids.copy())
         self.l_xy.append(self.und.segments(lines.segs))
         self.n_points += k
         self.n_lines += s
-        self.prev_gray = gray
+        self.prev_gray, self.prev_small = gray, small
         self._t_last = time.perf_counter()
         sec["undistort"] += self._t_last - t8
         return f"frame {frame.index}: {k} points, {s} segments{', keyframe' if kf else ''}"

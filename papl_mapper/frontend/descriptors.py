@@ -1,0 +1,48 @@
+"""Binary descriptors (ORB, LBD; 32 bytes): Hamming distances and mutual-nearest matching."""
+
+from __future__ import annotations
+
+import numpy as np
+
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamming distances (A, B) between rows of two uint8 descriptor arrays."""
+    a = np.asarray(a, np.uint8)
+    b = np.asarray(b, np.uint8)
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((len(a), len(b)), np.int64)
+    return _POPCOUNT[a[:, None, :] ^ b[None, :, :]].sum(axis=2, dtype=np.int64)
+
+
+def hamming_pairs(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
+    """Hamming distances (P,) between rows a[ia] and b[ib]."""
+    if len(ia) == 0:
+        return np.zeros(0, np.int64)
+    return _POPCOUNT[np.asarray(a, np.uint8)[ia] ^ np.asarray(b, np.uint8)[ib]].sum(axis=1, dtype=np.int64)
+
+
+def match_descriptors(
+    desc_a: np.ndarray, desc_b: np.ndarray, max_hamming: int, ratio: float, allowed: np.ndarray | None = None
+) -> np.ndarray:
+    """Mutual nearest neighbours passing a distance and a ratio test; (M, 2) rows (ia, ib).
+
+    `allowed` (A, B) bool restricts the candidates (a geometric gate); only those are compared.
+    """
+    na, nb = len(desc_a), len(desc_b)
+    if na == 0 or nb == 0:
+        return np.zeros((0, 2), np.int64)
+    if allowed is None:
+        ham = hamming(desc_a, desc_b).astype(np.float64)
+    else:
+        ia, ib = np.nonzero(allowed)
+        ham = np.full((na, nb), np.inf)
+        ham[ia, ib] = hamming_pairs(desc_a, desc_b, ia, ib)
+    best_b = np.argmin(ham, axis=1)
+    best_a = np.argmin(ham, axis=0)
+    second = np.partition(ham, 1, axis=1)[:, 1] if nb > 1 else np.full(na, np.inf)
+    ia = np.arange(na)
+    d = ham[ia, best_b]
+    ok = np.isfinite(d) & (d <= max_hamming) & (best_a[best_b] == ia) & (d <= ratio * second)
+    return np.stack([ia[ok], best_b[ok]], axis=1).astype(np.int64)
