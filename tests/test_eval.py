@@ -389,6 +389,17 @@ def test_nearest_segment_distance_is_exact_on_dense_clutter():
             np.testing.assert_array_equal(got <= tau, brute <= tau)
 
 
+def test_nearest_segment_distance_on_crowded_duplicates():
+    """Hundreds of near-copies of one segment: the search widens to its last resort and stays exact."""
+    rng = np.random.default_rng(1)
+    base = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    segs = base + rng.normal(0, 1e-3, (600, 2, 3))
+    q = np.array([0.5, 0, 0]) + rng.normal(0, 0.05, (40, 3))
+    brute = point_segment_distance(q[:, None], segs[None, :, 0], segs[None, :, 1]).min(axis=1)
+    got = nearest_segment_distance(q, segs, 0.2, 0.02)
+    np.testing.assert_allclose(got, np.where(brute <= 0.2, brute, np.inf), atol=1e-12)
+
+
 def test_point_segment_distance_hand_values():
     a, b = np.array([0.0, 0, 0]), np.array([2.0, 0, 0])
     p = np.array([[1, 1, 0], [-3, 4, 0], [5, 0, 4], [1, 0, 0]], float)

@@ -22,6 +22,8 @@ from papl_mapper.errors import InputError
 
 #: Queries per chunk at 8 candidates each in the exact-distance step (memory ~ chunk * 8 * 100 bytes).
 _CHUNK = 131_072
+#: Widest k-nearest query; queries still unsettled then take the exact ball of candidates.
+_MAX_K = 2048
 
 
 @dataclass
@@ -120,6 +122,12 @@ def nearest_segment_distance(
     todo = np.arange(len(queries))
     k = 8 if lv is None else 1  # levels: the nearest sample's segment settles most well-covered queries
     while len(todo):
+        if k > _MAX_K:
+            for r in todo:  # extremely crowded targets only: every candidate in the ball, one query at a time
+                cand = np.unique(owner[tree.query_ball_point(queries[r], radius)])
+                d = point_segment_distance(queries[r], ends[cand, 0], ends[cand, 1]).min()
+                out[r] = d if d <= max_dist else np.inf
+            break
         k = min(k, len(pts))
         saturated = []
         chunk = max(256, _CHUNK * 8 // k)  # about a million (query, candidate) pairs at a time
@@ -144,12 +152,6 @@ def nearest_segment_distance(
                     b = np.where(below >= 0, lv[np.maximum(below, 0)], -np.inf)
                 saturated.append(rows[found[:, -1] & (dist[:, -1] <= b + 0.5 * h)])
         todo = np.concatenate(saturated) if saturated else todo[:0]
-        if len(todo) and k >= 4096:
-            for r in todo:  # extremely crowded targets only: the exact ball of candidates
-                cand = np.unique(owner[tree.query_ball_point(queries[r], radius)])
-                d = point_segment_distance(queries[r], ends[cand, 0], ends[cand, 1]).min()
-                out[r] = d if d <= max_dist else np.inf
-            break
         k = 8 if k == 1 else 4 * k
     return out
 
