@@ -564,6 +564,12 @@ def test_cli_bad_inputs_are_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert msg in err and "papl-map eval: error:" in err and len(err.splitlines()) == 1
     bad.write_text(good)
+    out_json = tmp_path / "no" / "x.json"
+    assert (
+        main(["eval", "--gt", str(tmp_path / "scene"), str(tmp_path / "m.papl"), "--json", str(out_json)])
+        == 2
+    )
+    assert "cannot write the results" in capsys.readouterr().err
     assert main(["eval", "--gt", str(tmp_path / "scene"), str(tmp_path / "m.papl")]) == 0
     out = capsys.readouterr().out
     assert "ATE RMSE" in out and "lines @ 2%" in out

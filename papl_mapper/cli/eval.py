@@ -22,10 +22,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("result", type=Path, help="a run folder (map.papl, trajectory.tum) or a .papl map file")
     p.add_argument(
-        "--gt", type=Path, required=True, help="ground-truth folder (GT or GT/gt with trajectory.tum, ...)"
+        "--gt",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="ground-truth folder (GT or GT/gt with trajectory.tum, ...)",
     )
     p.add_argument("--json", type=Path, metavar="OUT", help="also write every metric to this JSON file")
-    p.add_argument("--trajectory", type=Path, help="use this TUM file as the estimated trajectory")
+    p.add_argument(
+        "--trajectory", type=Path, metavar="TUM", help="use this TUM file as the estimated trajectory"
+    )
     p.add_argument("--config", type=Path, help="TOML file with eval options (EvalConfig fields)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override an option")
     p.set_defaults(func=run)

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from papl_mapper.errors import InputError
+from papl_mapper.errors import ConfigError, InputError
 from papl_mapper.map import Map
 
 from .axes import GtAxes, line_angle_deg, match_axes, read_axes
@@ -55,8 +55,7 @@ class EvalConfig:
     """Sampling step along segments for the line metrics, as a fraction of the smallest threshold."""
 
     def check(self) -> None:
-        from papl_mapper.errors import ConfigError
-
+        """Raise ConfigError on impossible values."""
         if not self.max_time_diff >= 0:
             raise ConfigError(f"eval max_time_diff must be >= 0, got {self.max_time_diff}")
         if self.rpe_delta < 1:
@@ -378,8 +377,14 @@ def write_json(result: EvalResult, path: str | os.PathLike) -> Path:
     """Write `result.to_dict()` as JSON atomically."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(result.to_dict(), indent=1) + "\n")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(result.to_dict(), indent=1) + "\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise InputError(
+            f"{path}: cannot write the results ({exc.strerror}); choose a writable path"
+        ) from exc
     return path
 
 
