@@ -336,6 +336,42 @@ def test_ate_rpe_scale_match_evo(tmp_path):
         assert ours[key] == pytest.approx(rp.get_statistic(metrics.StatisticsType.rmse), abs=EVO_AGREEMENT)
 
 
+def test_ate_matches_the_evo_ape_command(tmp_path):
+    """The literal `evo_ape tum gt est -as` on the same files: RMSE, per-pose errors and the Sim(3)."""
+    import subprocess
+    import sys
+    import zipfile
+
+    evo_ape = Path(sys.executable).parent / "evo_ape"
+    if not evo_ape.exists():
+        pytest.skip("evo_ape is not installed in this environment (dev extra)")
+    rng = np.random.default_rng(12)
+    gt = walk(n=200)
+    est = transform_traj(gt.subset(np.arange(0, 200, 3)), np.linalg.inv(random_sim3(seed=13, scale=0.3)))
+    est.T_wc[:, :3, 3] += rng.normal(0, 0.05, (len(est), 3))
+    est.timestamps = est.timestamps + rng.uniform(-0.005, 0.005, len(est))
+    write_gt(tmp_path / "scene", gt, *room_segments())
+    write_tum(tmp_path / "est.tum", est)
+    home = tmp_path / "home"  # evo writes its settings file under $HOME
+    home.mkdir()
+    subprocess.run(
+        [str(evo_ape), "tum", str(tmp_path / "scene" / "gt" / "trajectory.tum"), str(tmp_path / "est.tum")]
+        + ["-as", "--no_warnings", "--save_results", str(tmp_path / "evo.zip")],
+        check=True,
+        capture_output=True,
+        env={"HOME": str(home), "PATH": str(evo_ape.parent), "MPLBACKEND": "Agg"},
+    )
+    with zipfile.ZipFile(tmp_path / "evo.zip") as zf:
+        stats = json.loads(zf.read("stats.json"))
+        errors = np.load(zf.open("error_array.npy"))
+        sim3 = np.load(zf.open("alignment_transformation_sim3.npy"))
+    m = map_from(est, *room_segments())
+    res = evaluate(tmp_path / "scene", m, tmp_path / "est.tum")
+    assert res.ate_rmse == pytest.approx(stats["rmse"], abs=EVO_AGREEMENT)
+    np.testing.assert_allclose(res.ate_per_pose[1], errors, atol=EVO_AGREEMENT)
+    np.testing.assert_allclose(res.sim3, sim3, atol=EVO_AGREEMENT)
+
+
 # ---- lines ---------------------------------------------------------------------------------------
 
 SQUARE = np.array(
