@@ -639,3 +639,21 @@ def test_noisy_trajectory_ate_is_the_noise_level(tmp_path):
     assert res.scale == pytest.approx(0.8, rel=NOISY_SCALE_REL)
     assert res.ate_rmse == pytest.approx(sigma * math.sqrt(3), rel=0.1)  # 3D noise: RMSE = sqrt(3) sigma
     assert res.ate_rmse < res.ate_max
+
+
+def test_recall_per_ground_truth_axis(tmp_path):
+    gt = walk()
+    segs, lab = room_segments()
+    write_gt(tmp_path / "scene", gt, segs, lab)
+    only_vertical = map_from(gt, segs[lab == 0], lab[lab == 0])  # the 4 vertical edges, 3 of 32 units
+    res = evaluate(tmp_path / "scene", only_vertical)
+    by_axis = res.line_recall_by_axis
+    assert set(by_axis) == {"vertical", "horizontal 1", "horizontal 2"}
+    tau = res.line_thresholds["1%"]
+    assert by_axis["vertical"]["1%"] == pytest.approx(1.0)
+    # horizontal edges are covered only within tau of the corners: 2 tau per edge
+    assert by_axis["horizontal 1"]["1%"] == pytest.approx(2 * tau / 10, abs=1e-3)
+    assert by_axis["horizontal 2"]["1%"] == pytest.approx(2 * tau / 6, abs=1e-3)
+    assert res.line_recall["1%"] == pytest.approx((12 + 8 * 2 * tau) / 76, abs=1e-3)
+    assert res.line_precision["1%"] == pytest.approx(1.0)
+    assert "recall, vertical lines" in res.table()

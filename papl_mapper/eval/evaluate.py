@@ -23,7 +23,7 @@ from papl_mapper.errors import ConfigError, InputError
 from papl_mapper.map import Map
 
 from .axes import GtAxes, line_angle_deg, match_axes, read_axes
-from .lines import Segments, line_metrics, read_segments
+from .lines import Segments, covered_fraction, read_segments
 from .trajectory import (
     Trajectory,
     associate_trajectories,
@@ -92,6 +92,7 @@ class EvalResult:
     line_thresholds: dict[str, float] = field(default_factory=dict)  # key -> absolute tau (GT units)
     line_recall: dict[str, float | None] = field(default_factory=dict)
     line_precision: dict[str, float | None] = field(default_factory=dict)
+    line_recall_by_axis: dict[str, dict[str, float]] = field(default_factory=dict)  # GT axis name -> recall
     n_gt_segments: int = 0
     n_est_lines: int = 0
     gt_line_length: float = 0.0
@@ -152,6 +153,8 @@ class EvalResult:
                         f"recall {f(self.line_recall.get(key))}  precision {f(self.line_precision.get(key))}",
                     )
                 )
+        for name, rec in self.line_recall_by_axis.items():
+            rows.append((f"  recall, {name} lines", "  ".join(f"{k}: {f(v)}" for k, v in rec.items())))
         for p in self.axis_pairs:
             rows.append((f"axis {p['gt_name']} (gt {p['gt']} <- est {p['est']})", f(p["error_deg"], " deg")))
         if self.vertical_error_deg is not None:
@@ -301,13 +304,16 @@ def evaluate(
         notes=notes,
     )
     if gt.segments is not None:
-        _line_part(res, gt.segments, sim.apply(result.lines.endpoints_w), config)
+        names = gt.axes.names if gt.axes is not None else []
+        _line_part(res, gt.segments, sim.apply(result.lines.endpoints_w), config, names)
     if gt.axes is not None:
         _axis_part(res, gt.axes, result, sim.R)
     return res
 
 
-def _line_part(res: EvalResult, gt: Segments, est_w: np.ndarray, config: EvalConfig) -> None:
+def _line_part(
+    res: EvalResult, gt: Segments, est_w: np.ndarray, config: EvalConfig, names: list[str]
+) -> None:
     keep = gt.lengths() > 0
     if not keep.any():
         res.notes.append("the ground-truth segments have no length: no line metrics")
@@ -316,10 +322,19 @@ def _line_part(res: EvalResult, gt: Segments, est_w: np.ndarray, config: EvalCon
     diag = float(np.linalg.norm(ends.reshape(-1, 3).max(axis=0) - ends.reshape(-1, 3).min(axis=0)))
     rel = np.asarray(config.line_thresholds_rel, np.float64)
     taus = rel * diag
-    recall, precision, gt_len, est_len = line_metrics(
-        ends, est_w, taus, config.sample_spacing_rel * float(taus.min())
-    )
+    spacing = config.sample_spacing_rel * float(taus.min())
+    recall, gt_len, by_label = covered_fraction(ends, est_w, taus, spacing, gt.axis[keep])
+    precision, est_len, _ = covered_fraction(est_w, ends, taus, spacing)
+    if len(est_w) == 0:
+        recall = np.zeros(len(taus))
+        by_label = {a: np.zeros(len(taus)) for a in by_label}
     keys = [f"{100 * r:g}%" for r in rel]
+    res.line_recall_by_axis = {
+        (names[a] if 0 <= a < len(names) else f"axis {a}") if a >= 0 else "non-structural": {
+            k: float(v) for k, v in zip(keys, vals, strict=True)
+        }
+        for a, vals in sorted(by_label.items())
+    }
     res.scene_diagonal = diag
     res.n_gt_segments = int(keep.sum())
     res.gt_line_length = gt_len

@@ -157,24 +157,37 @@ def nearest_segment_distance(
 
 
 def covered_fraction(
-    measured: np.ndarray, target: np.ndarray, taus: np.ndarray, spacing: float
-) -> tuple[np.ndarray, float]:
-    """Length fraction of `measured` segments within each tau of some `target` segment, and their length."""
+    measured: np.ndarray,
+    target: np.ndarray,
+    taus: np.ndarray,
+    spacing: float,
+    labels: np.ndarray | None = None,
+) -> tuple[np.ndarray, float, dict[int, np.ndarray]]:
+    """Length fraction of `measured` segments within each tau of some `target` segment, their length,
+    and the same fraction per label of the measured segments (when `labels` (S,) is given)."""
     taus = np.asarray(taus, np.float64)
-    pts, _, w = sample_segments(measured, spacing, include_ends=False)
+    pts, owner, w = sample_segments(measured, spacing, include_ends=False)
     total = float(w.sum())
     if total <= 0:
-        return np.full(len(taus), np.nan), 0.0
+        return np.full(len(taus), np.nan), 0.0, {}
     d = nearest_segment_distance(pts, target, float(taus.max()), levels=taus)
-    return np.array([float(w[d <= tau].sum()) / total for tau in taus]), total
+    covered = d[None, :] <= taus[:, None]  # (T, Q)
+    fractions = (covered * w).sum(axis=1) / total
+    per_label: dict[int, np.ndarray] = {}
+    if labels is not None:
+        lab = np.asarray(labels)[owner]
+        for value in np.unique(lab):
+            sel = lab == value
+            per_label[int(value)] = (covered[:, sel] * w[sel]).sum(axis=1) / w[sel].sum()
+    return fractions, total, per_label
 
 
 def line_metrics(
     gt: np.ndarray, est: np.ndarray, taus: np.ndarray, spacing: float
 ) -> tuple[np.ndarray, np.ndarray, float, float]:
     """(recall (T,), precision (T,), GT length, estimated length) for segment sets (S, 2, 3), (M, 2, 3)."""
-    recall, gt_len = covered_fraction(gt, est, taus, spacing)
-    precision, est_len = covered_fraction(est, gt, taus, spacing)
+    recall, gt_len, _ = covered_fraction(gt, est, taus, spacing)
+    precision, est_len, _ = covered_fraction(est, gt, taus, spacing)
     if len(est) == 0 and gt_len > 0:
         recall = np.zeros(len(taus))
     return recall, precision, gt_len, est_len
