@@ -37,6 +37,7 @@ class Segments:
         return len(self.endpoints)
 
     def lengths(self) -> np.ndarray:
+        """(S,) segment lengths."""
         return np.linalg.norm(self.endpoints[:, 1] - self.endpoints[:, 0], axis=1)
 
 

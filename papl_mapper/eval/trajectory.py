@@ -47,6 +47,7 @@ class Trajectory:
         return self.T_wc[:, :3, 3]
 
     def subset(self, idx: np.ndarray) -> Trajectory:
+        """The poses at indices `idx`, in that order."""
         return Trajectory(self.timestamps[idx], self.T_wc[idx], self.name)
 
     def path_length(self) -> float:
