@@ -657,3 +657,21 @@ def test_recall_per_ground_truth_axis(tmp_path):
     assert res.line_recall["1%"] == pytest.approx((12 + 8 * 2 * tau) / 76, abs=1e-3)
     assert res.line_precision["1%"] == pytest.approx(1.0)
     assert "recall, vertical lines" in res.table()
+
+
+SAMPLE_TINY = Path(__file__).resolve().parents[1] / "samples" / "tiny"
+
+
+def test_bundled_sample_ground_truth_reads_and_scores_itself(tmp_path):
+    """The synth's real ground-truth files: its own map, moved by a Sim(3), scores perfectly."""
+    if not (SAMPLE_TINY / "gt" / "map.papl").is_file():
+        pytest.skip(f"bundled sample not found at {SAMPLE_TINY}")
+    m = Map.load(SAMPLE_TINY / "gt" / "map.papl")
+    S = random_sim3(seed=17, scale=4.0)
+    res = evaluate(SAMPLE_TINY, sim3_map(m, np.linalg.inv(S)))
+    assert res.n_matched_poses == len(m.keyframes) >= 3
+    assert res.ate_rmse < 1e-6  # the TUM file holds 9 decimals
+    assert res.scale == pytest.approx(4.0, rel=1e-6)
+    assert res.n_gt_segments > 0 and all(v == pytest.approx(1.0) for v in res.line_recall.values())
+    assert all(v == pytest.approx(1.0) for v in res.line_precision.values())
+    assert len(res.axis_errors_deg) == len(m.axes) and max(res.axis_errors_deg) < 1e-4
