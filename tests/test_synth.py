@@ -224,3 +224,29 @@ def test_exposure_and_motion_blur():
     width = int(((out[30, :, 0] > 0.02) & (out[30, :, 0] < 0.98)).sum())
     assert abs(width - abs(flow[0])) <= 2.5
     assert np.array_equal(out[:, 10, 0] > 0.5, img[:, 10, 0] > 0.5)
+
+
+SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+
+
+@pytest.mark.parametrize(("name", "frames"), [("tiny", 75), ("demo", 420)])
+def test_bundled_samples_are_complete_and_say_how_they_were_made(name, frames):
+    out = SAMPLES / name
+    if not out.is_dir():
+        pytest.skip(f"{out} is not bundled in this checkout")
+    info = json.loads((out / "scene.json").read_text())
+    args = build_parser().parse_args(shlex.split(info["command"])[1:])
+    cfg = config_from_args(args)
+    assert cfg == SynthConfig(**info["config"]) and args.out == f"samples/{name}"
+    assert (cfg.width, cfg.height, cfg.n_frames) == (640, 480, frames)
+    assert info["command"] in (out / "README.md").read_text()
+    assert len(np.loadtxt(out / "timestamps.txt")) == frames
+    assert len(np.loadtxt(out / "gt" / "trajectory.tum")) == frames
+    cap = cv2.VideoCapture(str(out / "video.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == frames
+    ok, first = cap.read()
+    cap.release()
+    assert ok and first.shape == (480, 640, 3)
+    m = Map.load(out / "gt" / "map.papl")
+    assert len(m.keyframes) == math.ceil(frames / KEYFRAME_EVERY) and len(m.lines) > 100
+    assert sum(p.stat().st_size for p in out.rglob("*") if p.is_file()) < 4e6, "a few MB at most"

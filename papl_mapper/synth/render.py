@@ -93,7 +93,10 @@ class Renderer:
         depth = None
         if with_depth:
             s = self.ss
-            near = inv_depth.reshape(cam.height, s, cam.width, s).max(axis=(1, 3))  # nearest surface
+            near = inv_depth[0::s, 0::s].copy()  # the nearest surface of each s x s block
+            for dy in range(s):
+                for dx in range(s):
+                    np.maximum(near, inv_depth[dy::s, dx::s], out=near)
             with np.errstate(divide="ignore"):
                 depth = np.where(near > 0, 1.0 / near, np.inf).astype(np.float32)
         return out, depth

@@ -1,0 +1,140 @@
+"""Benchmark: synthetic rendering speed per scene at 640x480 and 1280x720, on one core.
+
+Renders frames spread along each scene's walkthrough with OpenCV limited to one thread, with and
+without 2x supersampling, and times one full `generate` (render, blur/noise/exposure, mp4 encode,
+ground truth) at 640x480. Reports wall-clock and process-CPU frames per second: the machine is
+shared, so CPU time is the steadier figure. Prints a table, writes benchmarks/results/synth_render.json.
+Usage: .venv/bin/python benchmarks/synth_render.py [--frames N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from papl_mapper.synth import SynthConfig, generate, make_scene, walkthrough
+from papl_mapper.synth.render import Renderer
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SIZES = ((640, 480), (1280, 720))
+SUPERSAMPLE = (1, 2)
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def bench_render(scene_name: str, width: int, height: int, ss: int, n_frames: int) -> dict:
+    cfg = SynthConfig(scene=scene_name, width=width, height=height, seconds=20.0, supersample=ss)
+    t0 = time.perf_counter()
+    scene = make_scene(scene_name, 0)
+    cam = cfg.camera()
+    renderer = Renderer(scene, cam, ss)
+    setup_s = time.perf_counter() - t0
+    _, T = walkthrough(scene, cfg.n_frames, cfg.fps, 0)
+    idx = np.linspace(0, len(T) - 1, n_frames).round().astype(int)
+    renderer.render(T[idx[0]])  # warm-up
+    w0, c0 = time.perf_counter(), time.process_time()
+    for i in idx:
+        renderer.render(T[i])
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    return {
+        "scene": scene_name,
+        "width": width,
+        "height": height,
+        "supersample": ss,
+        "frames": int(n_frames),
+        "render_fps_wall": round(n_frames / wall, 2),
+        "render_fps_cpu": round(n_frames / cpu, 2),
+        "ms_per_frame_cpu": round(1000 * cpu / n_frames, 2),
+        "setup_s": round(setup_s, 3),
+    }
+
+
+def bench_generate(seconds: float) -> dict:
+    cfg = SynthConfig(
+        scene="corridor", seconds=seconds, noise_sigma=1.0, motion_blur=0.25, exposure_jitter=0.15
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = generate(cfg, Path(tmp) / "run")
+        wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+        video_mb = (out / "video.mp4").stat().st_size / 1e6
+    n = cfg.n_frames
+    return {
+        "what": "generate corridor 640x480, supersample 2, noise 1, blur 0.25, exposure 0.15",
+        "frames": n,
+        "generate_s_wall": round(wall, 2),
+        "generate_fps_wall": round(n / wall, 2),
+        "generate_fps_cpu": round(n / cpu, 2),
+        "video_mb_per_s": round(video_mb / seconds, 3),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=40, help="frames per measurement (default 40)")
+    parser.add_argument("--generate-seconds", type=float, default=5.0, help="length of the generate run")
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    rows = []
+    for name in ("corridor", "atlanta", "garage"):
+        for w, h in SIZES:
+            for ss in SUPERSAMPLE:
+                rows.append(bench_render(name, w, h, ss, args.frames))
+                r = rows[-1]
+                print(
+                    f"{name:<9} {w}x{h:<5} ss={ss}  {r['render_fps_wall']:7.1f} fps wall  "
+                    f"{r['render_fps_cpu']:7.1f} fps cpu  ({r['ms_per_frame_cpu']:.1f} ms cpu/frame)",
+                    flush=True,
+                )
+    gen = bench_generate(args.generate_seconds)
+    print(
+        f"generate  {gen['frames']} frames 640x480 ss=2: {gen['generate_fps_wall']:.1f} fps wall, "
+        f"{gen['generate_fps_cpu']:.1f} fps cpu, video {gen['video_mb_per_s']:.2f} MB/s"
+    )
+    load = os.getloadavg()
+    result = {
+        "benchmark": "synth_render",
+        "render": rows,
+        "generate": gen,
+        "opencv_threads": 1,
+        "machine": {
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "cpu_count": os.cpu_count(),
+            "processor": platform.processor() or platform.machine(),
+            "load_average_1_5_15": [round(x, 2) for x in load],
+            "opencv": cv2.__version__,
+            "numpy": np.__version__,
+        },
+        "git_commit": _commit(),
+        "note": (
+            "shared 2-core machine: wall-clock figures are disturbed by other jobs; "
+            "cpu figures are process CPU time"
+        ),
+    }
+    out = ROOT / "benchmarks" / "results" / "synth_render.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
