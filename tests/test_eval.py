@@ -199,6 +199,26 @@ def test_associate_matches_evo():
     assert got[0].tolist() == want[0] and got[1].tolist() == want[1]
 
 
+def test_associate_trajectories_starts_from_the_same_side_as_evo():
+    """Equal lengths: evo starts from the estimate; the pairs differ if one starts from the reference."""
+    sync = pytest.importorskip("evo.core.sync")
+    from evo.core.trajectory import PoseTrajectory3D
+
+    from papl_mapper.eval import associate_trajectories
+
+    ref = Trajectory(np.array([1.000, 1.008, 2.0]), np.repeat(np.eye(4)[None], 3, axis=0))
+    est = Trajectory(np.array([0.995, 1.004, 2.001]), np.repeat(np.eye(4)[None], 3, axis=0))
+    i_ref, i_est = associate_trajectories(ref, est, 0.01)
+
+    def evo_traj(t):
+        return PoseTrajectory3D(poses_se3=list(t.T_wc), timestamps=t.timestamps)
+
+    r, e = sync.associate_trajectories(evo_traj(ref), evo_traj(est), max_diff=0.01)
+    np.testing.assert_array_equal(ref.timestamps[i_ref], r.timestamps)
+    np.testing.assert_array_equal(est.timestamps[i_est], e.timestamps)
+    assert i_ref.tolist() == [0, 0, 2] and i_est.tolist() == [0, 1, 2]
+
+
 def test_umeyama_recovers_known_sim3_exactly_and_with_noise():
     x = walk().positions
     S = random_sim3()

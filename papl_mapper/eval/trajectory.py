@@ -145,7 +145,7 @@ def associate_trajectories(
     ref: Trajectory, est: Trajectory, max_diff: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """(i_ref, i_est) of matched poses, starting from the shorter trajectory as evo does."""
-    if len(est) < len(ref):
+    if len(est) <= len(ref):  # evo: the second (estimate) unless the first is strictly shorter
         i_est, i_ref = associate(est.timestamps, ref.timestamps, max_diff)
     else:
         i_ref, i_est = associate(ref.timestamps, est.timestamps, max_diff)
