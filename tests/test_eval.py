@@ -169,6 +169,15 @@ def test_malformed_tum_names_file_and_line(tmp_path, text, match):
     assert str(p) in str(info.value)
 
 
+def test_unsorted_tum_is_sorted_and_quaternions_normalised(tmp_path):
+    p = tmp_path / "u.tum"
+    p.write_text("2.0 2 0 0 0 0 0 2\n1.0 1 0 0 0 0 0.7071068 0.7071068\n")
+    t = read_tum(p)
+    assert t.timestamps.tolist() == [1.0, 2.0] and t.positions[:, 0].tolist() == [1.0, 2.0]
+    np.testing.assert_allclose(t.T_wc[1, :3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(t.T_wc[0, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-6)
+
+
 def test_missing_and_binary_tum(tmp_path):
     with pytest.raises(InputError, match="no such trajectory file"):
         read_tum(tmp_path / "none.tum")
