@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from papl_mapper.errors import GeometryError
+from papl_mapper.geometry.lines import endpoint_errors, plucker_from_endpoints, plucker_to_camera
+from papl_mapper.geometry.se3 import project_points
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
 from papl_mapper.mapping.lines import LineEstimates
 from papl_mapper.tracks import Tracks
@@ -142,3 +144,63 @@ def transform_map(m: Map, R: np.ndarray, t: np.ndarray | None = None, scale: flo
     if len(m.axes):
         m.axes.directions = m.axes.directions @ R.T
     return m
+
+
+def cull_observations(m: Map, max_point_px: float, max_line_px: float, min_views: int = 2) -> dict[str, int]:
+    """Drop outlier observations (in place): reprojection error over the limits or behind the camera.
+
+    Points and lines left with fewer than `min_views` distinct keyframes are removed with their
+    observations, so bundle adjustment never sees an unconstrained landmark. Returns the counts.
+    """
+    kf_row = {int(k): i for i, k in enumerate(m.keyframes.ids)}
+    T = m.keyframes.T_wc
+    K = m.camera.K
+    counts = {}
+    pts = m.points
+    if len(pts.obs_ids):
+        rows = np.searchsorted(pts.ids, pts.obs_ids[:, 0])
+        kfs = np.array([kf_row[int(k)] for k in pts.obs_ids[:, 1]])
+        uv, z = project_points(K, T[kfs], pts.xyz[rows])
+        ok = (z > 0) & (np.linalg.norm(uv - pts.obs_uv, axis=1) <= max_point_px)
+        counts["point_observations"] = int((~ok).sum())
+        pts.obs_ids, pts.obs_uv = pts.obs_ids[ok], pts.obs_uv[ok]
+    keep = _views(pts.ids, pts.obs_ids) >= min_views
+    counts["points"] = int((~keep).sum())
+    pts.ids, pts.xyz, pts.color = pts.ids[keep], pts.xyz[keep], pts.color[keep]
+    sel = np.isin(pts.obs_ids[:, 0], pts.ids)
+    pts.obs_ids, pts.obs_uv = pts.obs_ids[sel], pts.obs_uv[sel]
+    ln = m.lines
+    if len(ln.obs_ids):
+        rows = np.searchsorted(ln.ids, ln.obs_ids[:, 0])
+        kfs = np.array([kf_row[int(k)] for k in ln.obs_ids[:, 1]])
+        ends = ln.endpoints_w[rows]
+        L_w = plucker_from_endpoints(ends[:, 0], ends[:, 1])
+        L_c = plucker_to_camera(L_w, T[kfs])
+        err = np.abs(endpoint_errors(K, L_c, ln.obs_xy)).max(axis=1)
+        _, z = project_points(K, T[kfs], ends.mean(axis=1))
+        ok = (z > 0) & (err <= max_line_px)
+        counts["line_observations"] = int((~ok).sum())
+        ln.obs_ids, ln.obs_xy = ln.obs_ids[ok], ln.obs_xy[ok]
+    keep = _views(ln.ids, ln.obs_ids) >= min_views
+    counts["lines"] = int((~keep).sum())
+    for name in ("ids", "endpoints_w", "axis_weights", "state", "ref_keyframe_id", "inverse_depth"):
+        setattr(ln, name, getattr(ln, name)[keep])
+    sel = np.isin(ln.obs_ids[:, 0], ln.ids)
+    ln.obs_ids, ln.obs_xy = ln.obs_ids[sel], ln.obs_xy[sel]
+    # an anchored line's reference keyframe must still observe it
+    if len(ln):
+        seen = set(map(tuple, ln.obs_ids.tolist()))
+        for i in np.flatnonzero(ln.ref_keyframe_id >= 0):
+            if (int(ln.ids[i]), int(ln.ref_keyframe_id[i])) not in seen:
+                ln.ref_keyframe_id[i] = int(ln.obs_ids[ln.obs_ids[:, 0] == ln.ids[i], 1].min())
+                _, z = project_points(K, T[kf_row[int(ln.ref_keyframe_id[i])]], ln.endpoints_w[i].mean(0))
+                ln.inverse_depth[i] = 1.0 / max(float(z), 1e-12)
+    return counts
+
+
+def _views(ids: np.ndarray, obs_ids: np.ndarray) -> np.ndarray:
+    """Distinct keyframes observing each id."""
+    if len(obs_ids) == 0:
+        return np.zeros(len(ids), np.int64)
+    pairs = np.unique(obs_ids, axis=0)
+    return np.bincount(np.searchsorted(ids, pairs[:, 0]), minlength=len(ids))

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
-from papl_mapper.mapping.tracking import PnPConfig, track_pnp
+from papl_mapper.mapping.tracking import PnPConfig, PnPResult, track_pnp
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -34,6 +34,18 @@ class IncrementalConfig:
     """Smallest ray angle for triangulating a new point."""
     max_reprojection_px: float = 3.0
     """Largest reprojection error of a newly triangulated point in the views that made it."""
+    keyframe_min_inliers: int = 80
+    """A frame with fewer PnP inliers becomes a keyframe (the map needs new points)."""
+    keyframe_min_known: float = 0.5
+    """A frame whose inliers are fewer than this fraction of its point tracks becomes a keyframe."""
+    refine_every: int = 10
+    """New keyframes between two calls of the refinement callback (windowed BA)."""
+    max_lost_frames: int = 5
+    """Frames in a row that fail to register before tracking counts as lost and a new segment starts."""
+    merge_min_points: int = 12
+    """Fewest shared points (agreeing under the Sim(3)) to merge a segment into the map."""
+    merge_tolerance: float = 0.05
+    """Largest point disagreement after the Sim(3), as a fraction of the map's median point spread."""
 
 
 @dataclass
@@ -43,8 +55,10 @@ class Registration:
     frames: list[int] = field(default_factory=list)
     T_cw: dict[int, np.ndarray] = field(default_factory=dict)
     points_w: dict[int, np.ndarray] = field(default_factory=dict)
+    T_cw_frames: dict[int, np.ndarray] = field(default_factory=dict)
+    """PnP poses of the registered frames that are not keyframes."""
     lost: list[int] = field(default_factory=list)
-    """Keyframes that could not be registered (tracking loss)."""
+    """Frames that could not be registered (tracking loss)."""
     init_frames: tuple[int, int] = (-1, -1)
 
 
@@ -130,52 +144,176 @@ def _initialise(tracks: Tracks, keyframes: np.ndarray, cfg: IncrementalConfig) -
 
 
 def register_keyframes(
-    tracks: Tracks, config: IncrementalConfig | None = None, progress: ProgressCallback | None = None
+    tracks: Tracks,
+    config: IncrementalConfig | None = None,
+    progress: ProgressCallback | None = None,
+    refine: Callable[[Registration], None] | None = None,
 ) -> Registration:
-    """Register every keyframe of `tracks` in order; unregistrable ones are listed in `lost`."""
+    """Register the frames of `tracks`; where tracking is lost, map on in a new segment and merge it.
+
+    A frame becomes a keyframe when the frontend chose it, or when the map no longer explains it
+    well (few PnP inliers, or most of its tracks not yet in the map): an offline mapper can
+    afford the extra keyframes that keep it from losing track in turns. After `max_lost_frames`
+    frames in a row fail, a new segment is initialised further on; segments that share enough
+    triangulated points with the map are merged into it by a Sim(3), the others are reported and
+    left out (their frames are `lost`). `refine(reg)` runs after every `refine_every` keyframes.
+    """
     cfg = config or IncrementalConfig()
     tracks.validate()
     keyframes = np.flatnonzero(tracks.is_keyframe)
-    reg = _initialise(tracks, keyframes, cfg)
-    if reg is None:
+    segments: list[Registration] = []
+    start = 0
+    while start < len(tracks):
+        reg = _initialise(tracks, keyframes[keyframes >= start], cfg)
+        if reg is None:
+            break
+        end = _extend(tracks, reg, start, cfg, progress, refine)
+        segments.append(reg)
+        start = end + 1
+    if not segments:
         from papl_mapper.errors import InputError
 
         raise InputError(
             f"could not initialise from {len(keyframes)} keyframes: too little parallax or too few "
             "tracked points; try a recording with sideways or forward motion, or a lower --step"
         )
-    K = tracks.camera.K
-    start = int(np.searchsorted(keyframes, reg.init_frames[0]))
-    order = [int(f) for f in keyframes[start:] if f not in reg.T_cw]
-    last_T = reg.T_cw[reg.init_frames[1]]
-    for i, f in enumerate(order):
-        ids, uv = tracks.points_in(f)
-        known = np.array([t in reg.points_w for t in ids.tolist()], bool)
-        if known.sum() < cfg.pnp.min_inliers:
-            reg.lost.append(f)
-            continue
-        X = np.stack([reg.points_w[int(t)] for t in ids[known]])
-        res = track_pnp(X, uv[known], K, last_T, cfg.pnp)
-        if not res.ok:
-            log.info("keyframe %d not registered: %s", f, res.reason)
-            reg.lost.append(f)
-            continue
-        reg.T_cw[f] = last_T = res.T_cw
-        reg.frames.append(f)
-        added = _triangulate_new(tracks, reg, f, cfg)
-        log.debug("keyframe %d: %s, %d new points", f, res.reason, added)
-        if progress:
-            progress(i + 1, len(order), f"{len(reg.points_w)} points")
-    # keyframes before the initialisation pair (if the init started late) are tracked backwards
-    for f in reversed(keyframes[:start].tolist()):
-        ids, uv = tracks.points_in(int(f))
-        known = np.array([t in reg.points_w for t in ids.tolist()], bool)
-        if known.sum() >= cfg.pnp.min_inliers:
-            X = np.stack([reg.points_w[int(t)] for t in ids[known]])
-            res = track_pnp(X, uv[known], K, reg.T_cw[reg.frames[0]], cfg.pnp)
-            if res.ok:
-                reg.T_cw[int(f)] = res.T_cw
-                reg.frames.insert(0, int(f))
-                continue
-        reg.lost.append(int(f))
+    reg = _merge_segments(segments, cfg)
+    registered = set(reg.T_cw) | set(reg.T_cw_frames)
+    reg.lost = [f for f in range(len(tracks)) if f not in registered]
+    reg.frames.sort()
     return reg
+
+
+def _extend(
+    tracks: Tracks,
+    reg: Registration,
+    start: int,
+    cfg: IncrementalConfig,
+    progress: ProgressCallback | None,
+    refine: Callable[[Registration], None] | None,
+) -> int:
+    """Register frames after the initial pair until tracking is lost; returns the last frame tried."""
+    f1, f2 = reg.init_frames
+    last_T = reg.T_cw[f1]
+    since_refine = 0
+    misses = 0
+    f = f1
+    for f in range(f1 + 1, len(tracks)):
+        if f == f2:
+            last_T = reg.T_cw[f2]
+            continue
+        res, n_tracks = _pnp(tracks, reg, f, last_T, cfg)
+        if res is None or not res.ok:
+            log.debug("frame %d not registered: %s", f, "no map points" if res is None else res.reason)
+            misses += 1
+            if misses >= cfg.max_lost_frames and f > f2:
+                log.info("tracking lost at frame %d: %s", f - misses + 1, "segment ends")
+                f -= misses  # the next segment may start right after the last registered frame
+                break
+            continue
+        misses = 0
+        last_T = res.T_cw
+        n_inliers = int(res.inliers.sum())
+        weak = n_inliers < cfg.keyframe_min_inliers or n_inliers < cfg.keyframe_min_known * n_tracks
+        if tracks.is_keyframe[f] or weak:
+            reg.T_cw[f] = res.T_cw
+            reg.frames.append(f)
+            added = _triangulate_new(tracks, reg, f, cfg)
+            log.debug("keyframe %d: %s, %d new points", f, res.reason, added)
+            since_refine += 1
+            if refine is not None and cfg.refine_every > 0 and since_refine >= cfg.refine_every:
+                refine(reg)
+                last_T = reg.T_cw[f]
+                since_refine = 0
+        else:
+            reg.T_cw_frames[f] = res.T_cw
+        if progress:
+            progress(f + 1, len(tracks), f"{len(reg.frames)} keyframes, {len(reg.points_w)} points")
+    # frames between the segment's start and its initialisation pair are tracked backwards
+    for g in range(f1 - 1, start - 1, -1):
+        res, _ = _pnp(tracks, reg, g, reg.T_cw[min(reg.T_cw)], cfg)
+        if res is None or not res.ok:
+            break
+        reg.T_cw[g] = res.T_cw
+        reg.frames.append(g)
+    return max(f, f2)
+
+
+def _merge_segments(segments: list[Registration], cfg: IncrementalConfig) -> Registration:
+    """Chain the segments into the first one that can take them (Sim(3) on shared points)."""
+    from papl_mapper.errors import PaplError
+    from papl_mapper.eval.trajectory import umeyama
+
+    base = max(segments, key=lambda r: len(r.frames))
+    for seg in segments:
+        if seg is base:
+            continue
+        common = sorted(set(seg.points_w) & set(base.points_w))
+        sim = None
+        if len(common) >= cfg.merge_min_points:
+            x = np.array([seg.points_w[t] for t in common])
+            y = np.array([base.points_w[t] for t in common])
+            try:
+                sim = _robust_sim3(x, y, umeyama, cfg)
+            except PaplError as exc:
+                log.debug("segment merge: %s", exc)
+        if sim is None:
+            log.warning(
+                "tracking segment of frames %d-%d (%d keyframes) shares %d points with the map: left out",
+                min(seg.frames),
+                max(seg.frames),
+                len(seg.frames),
+                len(common),
+            )
+            continue
+        R, t, c = sim.R, sim.t, sim.scale
+        log.info(
+            "merged the segment of frames %d-%d on %d shared points",
+            min(seg.frames),
+            max(seg.frames),
+            len(common),
+        )
+        for src, dst in ((seg.T_cw, base.T_cw), (seg.T_cw_frames, base.T_cw_frames)):
+            for f, T in src.items():
+                if f in base.T_cw or f in base.T_cw_frames:
+                    continue
+                T2 = np.eye(4)
+                T2[:3, :3] = T[:3, :3] @ R.T
+                T2[:3, 3] = c * T[:3, 3] - T2[:3, :3] @ t
+                dst[f] = T2
+        base.frames = sorted(set(base.frames) | {f for f in seg.frames if f in base.T_cw})
+        for tid, X in seg.points_w.items():
+            base.points_w.setdefault(tid, c * R @ X + t)
+    return base
+
+
+def _robust_sim3(x: np.ndarray, y: np.ndarray, umeyama: Callable, cfg: IncrementalConfig):
+    """Sim(3) y ~ s R x + t by RANSAC over 3-point samples, refit on the inliers; None if too few agree."""
+    rng = np.random.default_rng(0)
+    scale = np.median(np.linalg.norm(y - np.median(y, axis=0), axis=1))
+    tol = cfg.merge_tolerance * scale
+    best = np.zeros(len(x), bool)
+    for _ in range(200):
+        idx = rng.choice(len(x), 3, replace=False)
+        try:
+            sim = umeyama(x[idx], y[idx])
+        except Exception:  # noqa: BLE001 - degenerate samples (collinear, coincident) are skipped
+            continue
+        inl = np.linalg.norm(sim.scale * x @ sim.R.T + sim.t - y, axis=1) < tol
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() < cfg.merge_min_points:
+        return None
+    return umeyama(x[best], y[best])
+
+
+def _pnp(
+    tracks: Tracks, reg: Registration, f: int, guess: np.ndarray, cfg: IncrementalConfig
+) -> tuple[PnPResult | None, int]:
+    """PnP of frame f against the points mapped so far; None when too few of them are seen."""
+    ids, uv = tracks.points_in(f)
+    known = np.array([t in reg.points_w for t in ids.tolist()], bool)
+    if known.sum() < cfg.pnp.min_inliers:
+        return None, len(ids)
+    X = np.stack([reg.points_w[int(t)] for t in ids[known]])
+    return track_pnp(X, uv[known], tracks.camera.K, guess, cfg.pnp), len(ids)

@@ -1,0 +1,131 @@
+"""`papl-map run VIDEO --out DIR`: map a recorded walkthrough (video file or image folder)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from papl_mapper.cli.progress import progress_bar
+from papl_mapper.config import load_config
+from papl_mapper.errors import InputError
+
+log = logging.getLogger("papl_mapper")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="map a recording: anchored line map, trajectories, summary",
+        description=__doc__,
+        epilog="Outputs in DIR: map.papl, trajectory.tum (every frame), keyframes.tum, config.toml, "
+        "summary.json, log.txt; with --export/--render/--report also those. An interrupted run "
+        "continues with --resume.",
+    )
+    p.add_argument("recording", help="video file (anything OpenCV's FFmpeg reads) or a folder of images")
+    p.add_argument("--out", required=True, type=Path, help="output folder (created if missing)")
+    p.add_argument(
+        "--camera",
+        type=Path,
+        help="intrinsics: camera.json, OpenCV YAML/JSON, COLMAP cameras.txt, "
+        "KITTI calib.txt (default: guessed from hfov_deg, with a warning)",
+    )
+    p.add_argument(
+        "--preset",
+        default="full",
+        help="ablation preset: full, hard-association, no-axis-management, "
+        "no-vertical-prior, no-vp-refinement, points-only, orthonormal-lines",
+    )
+    p.add_argument("--config", type=Path, help="TOML file with RunConfig fields")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--start", type=float, help="start time in seconds")
+    p.add_argument("--end", type=float, help="end time in seconds")
+    p.add_argument("--step", type=int, default=1, help="use every STEP-th frame (default 1)")
+    p.add_argument("--max-size", type=int, help="downscale so the longer image side is at most this")
+    p.add_argument("--seed", type=int, help="seed for random choices (default 0)")
+    p.add_argument(
+        "--resume", action="store_true", help="reuse the frontend checkpoint of an interrupted run"
+    )
+    p.add_argument(
+        "--export", help="comma-separated export formats written beside the map, e.g. ply,glb,usdc"
+    )
+    p.add_argument("--render", action="store_true", help="also write PNG previews into DIR/previews")
+    p.add_argument("--report", action="store_true", help="also write DIR/report.html")
+    p.add_argument("--gt", type=Path, help="ground-truth folder for the report and eval.json")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from papl_mapper.pipelines.config import PRESETS, RunConfig
+    from papl_mapper.pipelines.run import run as run_pipeline
+
+    if args.preset not in PRESETS:
+        raise InputError(f"unknown preset {args.preset!r}; known: {', '.join(PRESETS)}")
+    overrides = list(PRESETS[args.preset]) + list(args.set)
+    if args.seed is not None:
+        overrides.append(f"seed={args.seed}")
+    if args.export:
+        overrides.append(f"output.export={args.export}")
+    cfg = load_config(RunConfig, args.config, overrides)
+    args.out.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(args.out / "log.txt", mode="a" if args.resume else "w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    log.addHandler(handler)
+    try:
+        result = run_pipeline(
+            args.recording,
+            args.out,
+            cfg,
+            camera_file=args.camera,
+            start_s=args.start,
+            end_s=args.end,
+            step=args.step,
+            max_size=args.max_size,
+            resume=args.resume,
+            progress=progress_bar,
+        )
+    except KeyboardInterrupt:
+        log.error("interrupted: outputs are unchanged; rerun with --resume to reuse the decoded tracks")
+        raise
+    finally:
+        log.removeHandler(handler)
+        handler.close()
+    s = result.summary
+    c = s["counts"]
+    print(
+        f"{args.out}: {c.get('keyframes', 0)} keyframes, {c.get('points', 0)} points, "
+        f"{c.get('lines', 0)} lines "
+        f"({100 * c.get('anchored_fraction', 0):.0f}% anchored), {len(result.map.axes)} axes; "
+        f"{s['frames_lost']} of {s['recording']['frames']} frames without a pose"
+    )
+    _extras(args, cfg, result)
+    return 0
+
+
+def _extras(args: argparse.Namespace, cfg, result) -> None:
+    """Exports, previews, report and evaluation asked for on the command line."""
+    out: Path = args.out
+    for fmt in cfg.output.export:
+        from papl_mapper.exporters import export
+
+        path = export(result.map, out / f"map.{fmt.strip().lstrip('.')}")
+        print(f"wrote {path}")
+    if args.gt is not None:
+        import json
+
+        from papl_mapper.eval import evaluate
+
+        ev = evaluate(args.gt, result.map, out / "trajectory.tum")
+        (out / "eval.json").write_text(json.dumps(ev.to_dict(), indent=1))
+        print(ev.table())
+    if args.render or cfg.output.render:
+        from papl_mapper.gui.preview import render_views
+
+        with progress_bar("previews") as cb:
+            res = render_views(result.map, out / "previews", progress=cb)
+        print(f"wrote {len(res.paths)} previews into {out / 'previews'}")
+    if args.report or cfg.output.report:
+        from papl_mapper.gui.report import write_report
+
+        path = write_report(out, out / "report.html", gt_dir=args.gt)
+        print(f"wrote {path}")

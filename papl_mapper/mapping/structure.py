@@ -1,0 +1,96 @@
+"""Principal axes of a whole map: the vertical, horizontal axes by mean shift, soft line weights by EM.
+
+A batch tool sees every line at once, so axis creation runs over all structural lines until no
+new axis is accepted (the paper creates one per local map); association then gives every line
+its weights w_kj from the world vanishing directions it was observed with.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from papl_mapper.axes import AxesConfig, AxisState, associate, create_axes
+from papl_mapper.map import Axes
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Structure:
+    """Axes (vertical first), per-line weights (M,A) and the axis book-keeping for later updates."""
+
+    axes: Axes
+    weights: np.ndarray
+    state: AxisState
+
+
+def hard_weights(weights: np.ndarray) -> np.ndarray:
+    """One-hot rows: each associated line goes to its single best axis (the hard-association ablation)."""
+    out = np.zeros_like(weights)
+    has = weights.sum(axis=1) > 0
+    out[np.flatnonzero(has), weights[has].argmax(axis=1)] = 1.0
+    return out
+
+
+def line_weights(
+    obs_dirs_w: np.ndarray,
+    obs_line: np.ndarray,
+    n_lines: int,
+    axes: np.ndarray,
+    config: AxesConfig,
+    hard: bool,
+) -> np.ndarray:
+    """EM weights (n_lines, A) from packed world vanishing directions (K,3) of line observations."""
+    ok = np.isfinite(obs_dirs_w).all(axis=1)
+    w = associate((obs_dirs_w[ok], obs_line[ok]), axes, config, n_lines=n_lines)
+    return hard_weights(w) if hard else w
+
+
+def find_structure(
+    line_dirs_w: np.ndarray,
+    structural: np.ndarray,
+    obs_dirs_w: np.ndarray,
+    obs_line: np.ndarray,
+    vertical_w: np.ndarray,
+    config: AxesConfig | None = None,
+    hard: bool = False,
+    max_axes: int = 8,
+) -> Structure:
+    """Axes and weights for lines with directions (M,3), `structural` (M,) marking VP-classified ones.
+
+    `obs_dirs_w` (K,3) / `obs_line` (K,) are the world vanishing directions of the lines'
+    observations (NaN rows for non-structural observations).
+    """
+    cfg = config or AxesConfig()
+    n = len(line_dirs_w)
+    axes = np.asarray(vertical_w, np.float64).reshape(1, 3) / np.linalg.norm(vertical_w)
+    weights = line_weights(obs_dirs_w, obs_line, n, axes, cfg, hard)
+    while len(axes) < max_axes:
+        free = structural & (weights.sum(axis=1) == 0)
+        res = create_axes(
+            line_dirs_w[free],
+            axes,
+            int(free.sum()),
+            cfg,
+            n_structural=int((weights.sum(axis=1) > 0).sum()),
+        )
+        if len(res.new_axes) == 0:
+            log.debug("axis creation stops: %s", res.reason or "no candidate accepted")
+            break
+        axes = np.vstack([axes, res.new_axes])
+        weights = line_weights(obs_dirs_w, obs_line, n, axes, cfg, hard)
+    angles = [
+        np.degrees(np.arccos(np.clip(abs(a @ axes[0]), 0, 1))) for a in axes[1:]
+    ]  # horizontal axes should be near 90 deg from the vertical
+    log.info(
+        "%d axes (vertical + %d horizontal, %s deg from vertical); %d of %d lines associated",
+        len(axes),
+        len(axes) - 1,
+        ", ".join(f"{a:.1f}" for a in angles) or "-",
+        int((weights.sum(axis=1) > 0).sum()),
+        n,
+    )
+    return Structure(Axes(axes, vertical_index=0), weights, AxisState.new(len(axes), vertical_index=0))

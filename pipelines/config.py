@@ -1,0 +1,83 @@
+"""The configuration of one `papl-map run`: every stage's config nested, plus the ablation variant.
+
+Presets name the paper's ablations (and points-only / orthonormal-only lines); a preset is a list
+of overrides applied before the user's own `--config` file and `--set` overrides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from papl_mapper.axes import AxesConfig
+from papl_mapper.backend import BAConfig
+from papl_mapper.frontend import FrontendConfig
+from papl_mapper.mapping.incremental import IncrementalConfig
+from papl_mapper.mapping.lines import LineInitConfig
+
+
+@dataclass
+class VariantConfig:
+    """Which parts of the method are on (the ablation switches)."""
+
+    lines: Literal["anchored", "orthonormal", "none"] = "anchored"
+    """Anchored structural lines (the method), every line orthonormal, or no lines (points only)."""
+    association: Literal["soft", "hard"] = "soft"
+    """EM soft line-axis weights, or each line anchored to its single best axis."""
+    axis_management: bool = True
+    """Update, merge and delete axes after the first global BA and optimise again."""
+
+
+@dataclass
+class OutputConfig:
+    """What the run writes besides the map and trajectories."""
+
+    export: list[str] = field(default_factory=list)
+    """Export formats written beside the map (suffixes such as ply, glb, usdc)."""
+    render: bool = False
+    """Write PNG previews into previews/."""
+    report: bool = False
+    """Write report.html."""
+
+
+@dataclass
+class RunConfig:
+    """Everything one run depends on; written beside the outputs as config.toml."""
+
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    """Decoding, points, lines, vanishing points, keyframes."""
+    mapping: IncrementalConfig = field(default_factory=IncrementalConfig)
+    """Initialisation, PnP tracking, point triangulation."""
+    lines: LineInitConfig = field(default_factory=LineInitConfig)
+    """Line triangulation (the temporary-vanishing-point stage for structural lines)."""
+    axes: AxesConfig = field(default_factory=AxesConfig)
+    """Principal-axis creation, association and update."""
+    ba: BAConfig = field(default_factory=BAConfig)
+    """Global bundle adjustment."""
+    variant: VariantConfig = field(default_factory=VariantConfig)
+    """Ablation switches."""
+    output: OutputConfig = field(default_factory=OutputConfig)
+    """Extra outputs."""
+    seed: int = 0
+    """Seed for every random choice (RANSAC), so the same input gives the same map."""
+    local_ba_every: int = 10
+    """Run a windowed BA over the newest keyframes after this many registrations (0: never)."""
+    local_ba_window: int = 15
+    """Keyframes optimised by each windowed BA."""
+    max_point_error_px: float = 4.0
+    """Point observations reprojecting further than this are culled before each bundle adjustment."""
+    max_line_error_px: float = 4.0
+    """Line observations with an endpoint further than this from the projected line are culled."""
+    hfov_deg: float = 60.0
+    """Horizontal field of view used to guess intrinsics when no camera file is given."""
+
+
+PRESETS: dict[str, list[str]] = {
+    "full": [],
+    "hard-association": ["variant.association=hard"],
+    "no-axis-management": ["variant.axis_management=false"],
+    "no-vertical-prior": ["frontend.vp.use_vertical_prior=false"],
+    "no-vp-refinement": ["frontend.vp.refine_svd=false"],
+    "points-only": ["variant.lines=none"],
+    "orthonormal-lines": ["variant.lines=orthonormal"],
+}

@@ -1,0 +1,391 @@
+"""`papl-map run`: one recording to one anchored line map, as a short recipe over the stages.
+
+frontend (tracks) -> keyframe registration with windowed BA -> points-only global BA -> line
+triangulation (temporary-VP stage) -> upright rotation, axes and soft association -> full global
+BA over points, anchored and orthonormal lines -> axis update and a second BA -> every frame's pose.
+The frontend's tracks are checkpointed, so `--resume` after an interruption skips decoding.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import logging
+import time
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from papl_mapper.pipelines.config import RunConfig
+
+from papl_mapper import __version__
+from papl_mapper.backend import global_ba, local_ba
+from papl_mapper.config import config_to_dict, dump_toml
+from papl_mapper.errors import GeometryError, OptimizationError
+from papl_mapper.eval.trajectory import Trajectory, write_tum
+from papl_mapper.frontend import FrontendStats, process
+from papl_mapper.frontend.camera import camera_for_recording
+from papl_mapper.frontend.video import open_recording
+from papl_mapper.map import Axes, LineState, Map
+from papl_mapper.mapping.assemble import (
+    assemble_map,
+    cull_observations,
+    rotation_to_z,
+    transform_map,
+    vertical_in_world,
+    vp_directions_w,
+)
+from papl_mapper.mapping.incremental import Registration, register_keyframes
+from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
+from papl_mapper.mapping.structure import find_structure, line_weights
+from papl_mapper.mapping.tracking import track_pnp
+from papl_mapper.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+ProgressCallback = Callable[[int, int, str], None]
+ProgressFactory = Callable[[str], AbstractContextManager[ProgressCallback]]
+
+
+@contextlib.contextmanager
+def _silent(_: str) -> Iterator[ProgressCallback]:
+    yield lambda done, total, message="": None
+
+
+@dataclass
+class RunResult:
+    """What a run wrote and its summary (the same dict as summary.json)."""
+
+    out_dir: Path
+    map: Map
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def _sha256(path: Path, limit: int = 1 << 30) -> str:
+    """SHA-256 of a file (of its first GiB for larger ones, which the summary says)."""
+    h = hashlib.sha256()
+    if path.is_dir():
+        for p in sorted(path.iterdir()):
+            h.update(p.name.encode())
+        return h.hexdigest()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 20):
+            h.update(chunk)
+            if fh.tell() >= limit:
+                break
+    return h.hexdigest()
+
+
+class _Timer:
+    """Wall time per stage, in the order the stages ran."""
+
+    def __init__(self) -> None:
+        self.times: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.times[name] = round(self.times.get(name, 0.0) + time.perf_counter() - t0, 4)
+
+
+def run(
+    recording: str | Path,
+    out_dir: str | Path,
+    config: RunConfig | None = None,
+    *,
+    camera_file: str | Path | None = None,
+    start_s: float | None = None,
+    end_s: float | None = None,
+    step: int = 1,
+    max_size: int | None = None,
+    resume: bool = False,
+    progress: ProgressFactory | None = None,
+) -> RunResult:
+    """Map one recording into `out_dir`: map.papl, trajectory.tum, keyframes.tum, config.toml, summary."""
+    cfg = config or RunConfig()
+    progress = progress or _silent
+    recording, out = Path(recording), Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = out / ".checkpoint"
+    timer = _Timer()
+    rec = open_recording(recording, step, start_s, end_s, max_size)
+    cam_src = camera_for_recording(camera_file, rec.width, rec.height, cfg.hfov_deg)
+    sha = _sha256(recording)
+    key = json.dumps(
+        {
+            "input": sha,
+            "frontend": config_to_dict(cfg.frontend),
+            "camera": cam_src.camera.to_dict(),
+            "range": [start_s, end_s, step, max_size],
+        },
+        sort_keys=True,
+        default=str,
+    )
+    tracks_file = ckpt / "tracks.npz"
+    key_file = ckpt / "tracks.key"
+    tracks = None
+    if resume and tracks_file.exists() and key_file.exists() and key_file.read_text() == key:
+        tracks = Tracks.load(tracks_file)
+        log.info("resumed: frontend tracks from %s", tracks_file)
+    if tracks is None:
+        fstats = FrontendStats()
+        with timer.stage("frontend"), progress("frontend") as cb:
+            tracks = process(rec, cam_src.camera, cfg.frontend, progress=cb, stats=fstats)
+        (ckpt / "frontend.json").parent.mkdir(exist_ok=True)
+        _atomic_text(ckpt / "frontend.json", json.dumps(dataclasses.asdict(fstats), default=_json_default))
+        ckpt.mkdir(exist_ok=True)
+        tracks.save(tracks_file)
+        key_file.write_text(key)
+    m, stats = map_tracks(tracks, cfg, timer, progress)
+    m.metadata.update(
+        {
+            "units": "arbitrary",
+            "software": f"papl-mapper {__version__}",
+            "source": {"path": str(recording), "sha256": sha},
+            "camera_source": cam_src.source,
+            "camera_guessed": bool(cam_src.guessed),
+            "variant": config_to_dict(cfg.variant),
+            "timings_s": timer.times,
+        }
+    )
+    with timer.stage("trajectory"):
+        traj = frame_trajectory(tracks, m, cfg)
+    summary = {
+        "recording": {
+            "path": str(recording),
+            "frames": int(len(tracks)),
+            "fps": float(rec.fps),
+            "width": int(rec.width),
+            "height": int(rec.height),
+            "sha256": sha,
+            "stopped_early": bool(rec.stopped_early),
+            "stop_message": rec.stop_message,
+        },
+        "camera": {**cam_src.camera.to_dict(), "source": cam_src.source, "guessed": bool(cam_src.guessed)},
+        "counts": m.summary(),
+        "frontend": _frontend_stats(ckpt),
+        "frames_lost": int(len(tracks) - len(traj)),
+        **stats,
+        "timings_s": timer.times,
+        "per_frame": _per_frame(tracks),
+    }
+    _write_outputs(out, m, traj, cfg, summary)
+    return RunResult(out, m, summary)
+
+
+def map_tracks(
+    tracks: Tracks, cfg: RunConfig, timer: _Timer | None = None, progress: ProgressFactory | None = None
+) -> tuple[Map, dict[str, Any]]:
+    """Everything after the frontend: tracks -> optimised, upright Map and statistics."""
+    timer = timer or _Timer()
+    progress = progress or _silent
+    cfg.mapping.pnp.seed = cfg.seed
+
+    def refine(reg: Registration) -> None:
+        """Windowed BA over the newest keyframes; the older ones that share points hold still."""
+        T_wc = {f: np.linalg.inv(reg.T_cw[f]) for f in reg.frames}
+        empty = LineEstimates(np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros(0, bool), np.zeros(0))
+        m = assemble_map(tracks, T_wc, reg.points_w, empty)
+        cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views)
+        frames = sorted(reg.frames)
+        # the two oldest keyframes stay fixed: with the shared points they hold the gauge and scale
+        window = np.array(frames[max(2, len(frames) - cfg.local_ba_window) :])
+        try:
+            res = local_ba(m, window, cfg.ba)
+        except (GeometryError, OptimizationError) as exc:
+            log.debug("windowed BA skipped: %s", exc)
+            return
+        for k, T in zip(res.map.keyframes.ids, res.map.keyframes.T_wc, strict=True):
+            reg.T_cw[int(k)] = np.linalg.inv(T)
+        for p, x in zip(res.map.points.ids, res.map.points.xyz, strict=True):
+            reg.points_w[int(p)] = x
+
+    cfg.mapping.refine_every = cfg.local_ba_every
+    with timer.stage("registration"), progress("keyframes") as cb:
+        reg = register_keyframes(tracks, cfg.mapping, cb, refine if cfg.local_ba_every > 0 else None)
+    T_wc = {f: np.linalg.inv(T) for f, T in reg.T_cw.items()}
+    stats: dict[str, Any] = {"frames_unregistered": len(reg.lost), "keyframes_registered": len(reg.frames)}
+    empty = LineEstimates(np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros(0, bool), np.zeros(0))
+    m = assemble_map(tracks, T_wc, reg.points_w, empty)
+    with timer.stage("ba_points"):
+        m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points)")
+    up = vertical_in_world(tracks, _poses(m))
+    if up is None:
+        log.warning("no vertical vanishing direction: the map keeps the first camera's orientation")
+    else:
+        transform_map(m, rotation_to_z(up))
+    if cfg.variant.lines == "none":
+        return m, stats
+    with timer.stage("lines"):
+        T_by_frame = _poses(m)
+        sel = np.isin(tracks.line_frame, list(T_by_frame))
+        frames, labels = tracks.line_frame[sel], tracks.line_vp[sel]
+        T_obs = np.stack([T_by_frame[int(f)] for f in frames]) if sel.any() else np.zeros((0, 4, 4))
+        vp_w = vp_directions_w(tracks, frames, labels, T_obs)
+        est = triangulate_lines(
+            tracks.line_track[sel], T_obs, tracks.line_xy[sel], vp_w, tracks.camera.K, cfg.lines
+        )
+    log.info("%d lines triangulated, %d from vanishing directions", len(est.track), int(est.from_vp.sum()))
+    with timer.stage("axes"):
+        m_points = m
+        if cfg.variant.lines == "orthonormal" or up is None:
+            structure = None
+            m = assemble_map(tracks, T_by_frame, _points(m_points), est)
+        else:
+            obs_line = np.searchsorted(est.track, tracks.line_track[sel])
+            known = np.isin(tracks.line_track[sel], est.track)
+            obs_dirs, obs_line = vp_w[known], obs_line[known]
+            d = est.endpoints_w[:, 1] - est.endpoints_w[:, 0]
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            structure = find_structure(
+                d,
+                est.from_vp,
+                obs_dirs,
+                obs_line,
+                np.array([0.0, 0.0, 1.0]),
+                cfg.axes,
+                hard=cfg.variant.association == "hard",
+            )
+            m = assemble_map(tracks, T_by_frame, _points(m_points), est, structure.axes, structure.weights)
+        m.metadata = dict(m_points.metadata)
+    with timer.stage("ba_full"):
+        m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines)")
+    if structure is not None and cfg.variant.axis_management:
+        from papl_mapper.axes import remap_weights, update_axes
+
+        with timer.stage("axis_update"):
+            upd = update_axes(structure.axes.directions, m.axes.directions, structure.state, cfg.axes)
+            w = remap_weights(m.lines.axis_weights, upd.index_map, len(upd.axes))
+            stats["axis_update"] = upd.messages()
+            m.axes = upd.to_map_axes()
+            fresh = line_weights(
+                obs_dirs,
+                obs_line,
+                len(est.track),
+                m.axes.directions,
+                cfg.axes,
+                cfg.variant.association == "hard",
+            )
+            order = np.searchsorted(est.track, m.lines.ids)
+            m.lines.axis_weights = np.where(fresh[order].sum(1, keepdims=True) > 0, fresh[order], w)
+            _set_states(m)
+        if upd.adopted or upd.deleted or upd.merged:
+            with timer.stage("ba_full"):
+                m, stats["ba"] = _ba(m, cfg, progress, "BA (after axis update)")
+    if len(m.axes) and m.axes.vertical_index >= 0:
+        transform_map(m, rotation_to_z(_up(m.axes)))
+    return m, stats
+
+
+def _ba(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> tuple[Map, dict[str, Any]]:
+    """Outliers culled, then global BA with a progress bar per LM iteration; the map and statistics."""
+    culled = cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views)
+    log.info("%s: culled %s", title, ", ".join(f"{v} {k}" for k, v in culled.items() if v) or "nothing")
+    with progress(title) as cb:
+        res = global_ba(m, cfg.ba, progress=lambda i, n, cost: cb(i, n, f"cost {cost:.6g}"))
+    log.info(
+        "%s: cost %.6g -> %.6g in %d iterations (%.2f s); rms %s px",
+        title,
+        res.initial_cost,
+        res.final_cost,
+        res.iterations,
+        res.time_s,
+        ", ".join(f"{k} {v:.3f}" for k, v in res.final_rms_px.items()),
+    )
+    res.map.metadata = dict(m.metadata)
+    return res.map, {**res.summary(), "culled": culled}
+
+
+def _frontend_stats(ckpt: Path) -> dict[str, Any]:
+    try:
+        return json.loads((ckpt / "frontend.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _up(axes: Axes) -> np.ndarray:
+    v = axes.directions[axes.vertical_index]
+    return v if v[2] >= 0 else -v
+
+
+def _set_states(m: Map) -> None:
+    """Lines with axis weight are anchored (reference keyframe kept), the others orthonormal."""
+    anchored = m.lines.axis_weights.sum(axis=1) > 0
+    m.lines.state = np.where(anchored, LineState.ANCHORED, LineState.ORTHONORMAL).astype(np.int8)
+
+
+def _poses(m: Map) -> dict[int, np.ndarray]:
+    return {int(k): T for k, T in zip(m.keyframes.ids, m.keyframes.T_wc, strict=True)}
+
+
+def _points(m: Map) -> dict[int, np.ndarray]:
+    return {int(i): x for i, x in zip(m.points.ids, m.points.xyz, strict=True)}
+
+
+def frame_trajectory(tracks: Tracks, m: Map, cfg: RunConfig) -> Trajectory:
+    """A pose for every frame: keyframes from the map, the others by PnP against the map's points."""
+    K = tracks.camera.K
+    kf = _poses(m)
+    pid = m.points.ids
+    stamps, poses = [], []
+    last = None
+    for f in range(len(tracks)):
+        if f in kf:
+            T_wc = kf[f]
+        else:
+            ids, uv = tracks.points_in(f)
+            idx = np.searchsorted(pid, ids)
+            idx = np.minimum(idx, len(pid) - 1)
+            known = (len(pid) > 0) & (pid[idx] == ids) if len(pid) else np.zeros(len(ids), bool)
+            guess = np.linalg.inv(last) if last is not None else None
+            res = track_pnp(m.points.xyz[idx[known]], uv[known], K, guess, cfg.mapping.pnp)
+            if not res.ok:
+                continue
+            T_wc = np.linalg.inv(res.T_cw)
+        last = T_wc
+        stamps.append(tracks.timestamp[f])
+        poses.append(T_wc)
+    return Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4), "trajectory")
+
+
+def _per_frame(tracks: Tracks) -> dict[str, list[int]]:
+    n = len(tracks)
+    return {
+        "frame": tracks.frame_index.astype(int).tolist(),
+        "points": np.bincount(tracks.point_frame, minlength=n).astype(int).tolist(),
+        "lines": np.bincount(tracks.line_frame, minlength=n).astype(int).tolist(),
+    }
+
+
+def _write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary: dict[str, Any]) -> None:
+    """Everything is written under a temporary name and renamed, the map last."""
+    write_tum(out / "trajectory.tum", traj)
+    write_tum(out / "keyframes.tum", Trajectory(m.keyframes.timestamp, m.keyframes.T_wc, "keyframes"))
+    _atomic_text(out / "config.toml", dump_toml(config_to_dict(cfg)))
+    _atomic_text(out / "summary.json", json.dumps(summary, indent=1, default=_json_default))
+    m.save(out / "map.papl")
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+__all__ = ["RunConfig", "RunResult", "frame_trajectory", "map_tracks", "run"]

@@ -1,0 +1,100 @@
+"""`papl-map run` end to end on the bundled tiny sample, against its ground truth, and its bad inputs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from papl_mapper.cli import main
+from papl_mapper.eval import evaluate
+from papl_mapper.map import Map
+
+TINY = Path(__file__).resolve().parents[1] / "samples" / "tiny"
+MAX_ATE_REL_PATH = 0.01  # ATE RMSE / ground-truth path length over the frames with a pose
+MIN_POSED_FRAMES = 0.4  # fraction of frames with a pose (the sample turns at a blank wall)
+MAX_VERTICAL_ERR_DEG = 8.0
+OUTPUTS = ("map.papl", "trajectory.tum", "keyframes.tum", "config.toml", "summary.json", "log.txt")
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    if not (TINY / "video.mp4").exists():
+        pytest.skip("samples/tiny is not there")
+    out = tmp_path_factory.mktemp("run")
+    code = main(
+        ["-q", "run", str(TINY / "video.mp4"), "--camera", str(TINY / "camera.json"), "--out", str(out)]
+    )
+    assert code == 0
+    return out
+
+
+def test_outputs_and_summary(tiny_run):
+    for name in OUTPUTS:
+        assert (tiny_run / name).stat().st_size > 0, name
+    m = Map.load(tiny_run / "map.papl")
+    s = json.loads((tiny_run / "summary.json").read_text())
+    assert s["recording"]["frames"] == 75 and s["counts"]["keyframes"] == len(m.keyframes)
+    assert s["ba"]["final_cost"] <= s["ba"]["initial_cost"]
+    assert set(s["timings_s"]) >= {"frontend", "registration", "ba_points", "lines", "axes", "ba_full"}
+    assert len(m.axes) >= 2 and m.axes.vertical_index == 0
+    assert np.allclose(m.axes.directions[0], [0, 0, 1], atol=1e-9)  # the map is upright
+    assert (m.lines.state == 2).any() and (m.lines.axis_weights.sum(1) > 0).any()
+    assert not (tiny_run / ".checkpoint" / "tracks.npz").with_suffix(".tmp").exists()
+
+
+def test_accuracy_against_ground_truth(tiny_run):
+    m = Map.load(tiny_run / "map.papl")
+    ev = evaluate(TINY, m, tiny_run / "trajectory.tum")
+    assert ev.n_matched_poses >= MIN_POSED_FRAMES * 75
+    assert ev.ate_rmse_rel_path < MAX_ATE_REL_PATH
+    assert ev.axis_errors_deg[0] < MAX_VERTICAL_ERR_DEG
+
+
+def test_resume_reuses_the_frontend(tiny_run, capsys):
+    code = main(
+        [
+            "run",
+            str(TINY / "video.mp4"),
+            "--camera",
+            str(TINY / "camera.json"),
+            "--out",
+            str(tiny_run),
+            "--resume",
+            "--preset",
+            "points-only",
+        ]
+    )
+    assert code == 0
+    assert "resumed: frontend tracks" in (tiny_run / "log.txt").read_text()
+    assert len(Map.load(tiny_run / "map.papl").lines) == 0  # the points-only preset took effect
+
+
+def test_bad_inputs(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "missing.mp4" in err and err.count("\n") == 1
+    bad = tmp_path / "notes.mp4"
+    bad.write_text("not a video")
+    assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "notes.mp4" in capsys.readouterr().err
+    assert main(["run", str(bad), "--out", str(tmp_path / "o"), "--preset", "fastest"]) == 2
+    assert "unknown preset" in capsys.readouterr().err
+
+
+def test_static_recording_is_refused(tmp_path, capsys):
+    import cv2
+
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8), (5, 5), 0)
+    path = tmp_path / "static.mp4"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30, (320, 240))
+    for _ in range(30):
+        vw.write(img)
+    vw.release()
+    assert main(["run", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "could not initialise" in err and "parallax" in err
+    assert not (tmp_path / "o" / "map.papl").exists()
