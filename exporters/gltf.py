@@ -37,6 +37,21 @@ def to_y_up(xyz: np.ndarray) -> np.ndarray:
     return out
 
 
+def column_bounds(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column min and max of an (N, k) array, fast for tall arrays (min(axis=0) walks row by row)."""
+    n, k = a.shape
+    if n == 0:
+        return np.zeros(k, a.dtype), np.zeros(k, a.dtype)
+    rows = 1024
+    bulk = (n // rows) * rows
+    parts_lo, parts_hi = [a[bulk:]] if bulk < n else [], [a[bulk:]] if bulk < n else []
+    if bulk:
+        wide = a[:bulk].reshape(-1, rows * k)  # rows of 1024 records: reduce across them, then within
+        parts_lo.append(wide.min(axis=0).reshape(rows, k))
+        parts_hi.append(wide.max(axis=0).reshape(rows, k))
+    return np.vstack(parts_lo).min(axis=0), np.vstack(parts_hi).max(axis=0)
+
+
 def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
     """sRGB 0..255 -> linear 0..1 (glTF colour factors and COLOR_0 are linear)."""
     c = np.asarray(rgb, np.float64) / 255.0
@@ -63,10 +78,10 @@ class GltfBuilder:
     def add_accessor(self, array: np.ndarray, kind: str, target: int, with_bounds: bool) -> int:
         """Append a tightly packed float32 or uint32 array as its own buffer view and accessor."""
         data = np.ascontiguousarray(array)
-        raw = data.tobytes()
+        raw = memoryview(data).cast("B")  # no copy: the array's bytes are joined once, in finish()
         self.chunks.append(raw)
-        view = {"buffer": 0, "byteOffset": self.offset, "byteLength": len(raw), "target": target}
-        self.offset += len(raw)  # 4-byte components only, so every view stays 4-byte aligned
+        view = {"buffer": 0, "byteOffset": self.offset, "byteLength": raw.nbytes, "target": target}
+        self.offset += raw.nbytes  # 4-byte components only, so every view stays 4-byte aligned
         self.doc["bufferViews"].append(view)
         comp = FLOAT if data.dtype == np.float32 else UNSIGNED_INT
         acc: dict[str, Any] = {
@@ -76,9 +91,8 @@ class GltfBuilder:
             "type": kind,
         }
         if with_bounds:
-            flat = data.reshape(len(data), -1)
-            acc["min"] = [float(v) for v in flat.min(axis=0)]
-            acc["max"] = [float(v) for v in flat.max(axis=0)]
+            lo, hi = column_bounds(data.reshape(len(data), -1))
+            acc["min"], acc["max"] = [float(v) for v in lo], [float(v) for v in hi]
         self.doc["accessors"].append(acc)
         return len(self.doc["accessors"]) - 1
 
@@ -151,23 +165,22 @@ class GltfBuilder:
         doc["asset"] = {"version": "2.0", "generator": f"papl-mapper {__version__}", "extras": extras}
         if self.used_extensions:
             doc["extensionsUsed"] = sorted(self.used_extensions)
-        blob = b"".join(self.chunks)
-        if blob:
-            doc["buffers"] = [{"byteLength": len(blob)}]
+        n_bin = self.offset
+        if n_bin:
+            doc["buffers"] = [{"byteLength": n_bin}]
             if not binary:
-                doc["buffers"][0]["uri"] = (
-                    "data:application/octet-stream;base64," + base64.b64encode(blob).decode()
-                )
+                blob = base64.b64encode(b"".join(self.chunks)).decode()
+                doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + blob
         text = json.dumps(doc, separators=(",", ":")).encode()
         if not binary:
             return text
         text += b" " * (-len(text) % 4)
-        out = [struct.pack("<4sII", b"glTF", 2, 0), struct.pack("<I4s", len(text), b"JSON"), text]
-        if blob:
-            out += [struct.pack("<I4s", len(blob), b"BIN\x00"), blob]
-        total = sum(len(c) for c in out)
+        out = [None, struct.pack("<I4s", len(text), b"JSON"), text]
+        if n_bin:
+            out += [struct.pack("<I4s", n_bin, b"BIN\x00"), *self.chunks]
+        total = 12 + 8 + len(text) + (8 + n_bin if n_bin else 0)
         out[0] = struct.pack("<4sII", b"glTF", 2, total)
-        return b"".join(out)
+        return b"".join(out)  # the one copy of the binary data
 
 
 def scene_extras(scene: ExportScene) -> dict[str, Any]:

@@ -723,3 +723,13 @@ def test_format_rows_matches_python_formatting():
     big = np.array([2**60 + 1, 7])  # beyond float64's exact integers: the object path keeps them exact
     assert format_rows("%d %X\n", big, big) == f"{2**60 + 1} {2**60 + 1:X}\n7 7\n".encode()
     assert format_rows("%d\n", np.zeros(0, int)) == b""
+
+
+@pytest.mark.parametrize("n", [1, 7, 1024, 1025, 5000])
+def test_column_bounds_equal_numpy(n: int):
+    from papl_mapper.exporters.gltf import column_bounds
+
+    a = np.random.default_rng(n).normal(size=(n, 3)).astype(np.float32)
+    lo, hi = column_bounds(a)
+    np.testing.assert_array_equal(lo, a.min(axis=0))
+    np.testing.assert_array_equal(hi, a.max(axis=0))
