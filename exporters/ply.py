@@ -65,7 +65,7 @@ def scene_to_ply(scene: ExportScene, ascii: bool = False) -> bytes:
     header += ["property uchar red", "property uchar green", "property uchar blue", "end_header", ""]
     head = "\n".join(header).encode("ascii")
     if not ascii:
-        return head + vertex.tobytes() + edge.tobytes()
+        return b"".join([head, vertex.view(np.uint8), edge.view(np.uint8)])  # one copy of the data
     xyz = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1).astype(np.float64)
     rgb = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1)
     ij = np.stack([edge["vertex1"], edge["vertex2"]], axis=1)

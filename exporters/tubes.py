@@ -102,7 +102,7 @@ def export_tubes_ply(m: Map, options: ExportOptions | None = None) -> bytes:
     header += [f"property float {c}" for c in ("x", "y", "z", "nx", "ny", "nz")]
     header += [f"property uchar {c}" for c in ("red", "green", "blue")]
     header += [f"element face {nf}", "property list uchar int vertex_indices", "end_header", ""]
-    return "\n".join(header).encode("ascii") + vertex.tobytes() + face.tobytes()
+    return b"".join(["\n".join(header).encode("ascii"), vertex.view(np.uint8), face.view(np.uint8)])
 
 
 FORMATS = {".tubes.glb": export_tubes_glb, ".tubes.ply": export_tubes_ply}
