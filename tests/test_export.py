@@ -733,3 +733,41 @@ def test_column_bounds_equal_numpy(n: int):
     lo, hi = column_bounds(a)
     np.testing.assert_array_equal(lo, a.min(axis=0))
     np.testing.assert_array_equal(hi, a.max(axis=0))
+
+
+def test_frusta_corners_project_to_the_image_corners(kmap: Map):
+    """Each frustum's far corners reproject (pinhole) onto the image borders, at the asked depth."""
+    from papl_mapper.exporters.scene import frustum_segments
+
+    seg = frustum_segments(kmap, depth=2.0).reshape(len(kmap.keyframes), 8, 2, 3)
+    cam = kmap.camera
+    for T_wc, s in zip(kmap.keyframes.T_wc, seg, strict=True):
+        np.testing.assert_allclose(s[:4, 0], np.broadcast_to(T_wc[:3, 3], (4, 3)))  # rays leave the centre
+        corners_c = (s[:4, 1] - T_wc[:3, 3]) @ T_wc[:3, :3]  # world -> camera (R^T x)
+        np.testing.assert_allclose(corners_c[:, 2], 2.0)
+        uv = corners_c[:, :2] / corners_c[:, 2:] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+        w, h = cam.width - 0.5, cam.height - 0.5
+        np.testing.assert_allclose(uv, [[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]], atol=1e-9)
+        np.testing.assert_allclose(s[4:, 0], s[:4, 1])  # the rim joins the corners in order
+        np.testing.assert_allclose(s[4:, 1], np.roll(s[:4, 1], -1, axis=0))
+
+
+def test_observation_counts_ignore_unknown_ids():
+    from papl_mapper.exporters.scene import observation_counts
+
+    ids = np.array([30, 10, 20])
+    obs = np.array([10, 10, 20, 99, 30, 10, 5])
+    np.testing.assert_array_equal(observation_counts(ids, obs), [1, 3, 1])
+    np.testing.assert_array_equal(observation_counts(np.zeros(0, int), obs), [])
+
+
+def test_options_from_toml(tmp_path: Path):
+    from papl_mapper.config import load_config
+
+    cfg = tmp_path / "export.toml"
+    cfg.write_text('parts = ["lines", "frusta"]\nmin_observations = 3\npalette = "vivid"\n')
+    o = load_config(ExportOptions, cfg, ["tube_sides=8"])
+    assert o.parts == ("lines", "frusta") and o.min_observations == 3 and o.palette == "vivid"
+    assert o.tube_sides == 8
+    with pytest.raises(ConfigError, match="tube_sides"):
+        ExportOptions(tube_sides=2).check()
