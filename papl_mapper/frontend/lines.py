@@ -49,7 +49,7 @@ class LineConfig:
     """Largest angle between fragments that are merged."""
     fuse_distance_px: float = 1.5
     """Largest distance of a fragment's endpoints to the other fragment's line."""
-    fuse_gap_px: float = 10.0
+    fuse_gap_px: float = 20.0
     """Largest gap along the line between merged fragments."""
     match_angle_deg: float = 5.0
     """Tracking gate: angle between the predicted and the detected segment."""

@@ -1,0 +1,235 @@
+"""Benchmark: the whole frontend on 1280x720 and 640x480 30 fps recordings, per-step breakdown,
+and its accuracy against the synthetic ground truth.
+
+Recording: the synthetic corridor walkthrough of papl_mapper.synth (Gaussian noise sigma 2),
+generated into a cache folder on first use. Throughput is frames / wall-clock seconds of
+`frontend.process` (decoding in its thread, segments in a worker thread, VPs afterwards), so it
+is the real-time figure; the per-step table is seconds of each step per frame ("lines" runs in
+parallel with "points"; "lines_wait" is the main thread waiting for it). Accuracy: segment
+detection precision/recall against the visible projected GT segments, frame-to-frame and
+keyframe LBD match precision, vanishing-direction errors against the GT axes.
+
+The machine is shared with other jobs: the load average is recorded before and after; compare
+the variants of one run with each other (same load) rather than with other runs.
+Usage: .venv/bin/python benchmarks/frontend_throughput.py [--seconds 8] [--cache DIR] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from papl_mapper.eval.trajectory import read_tum
+from papl_mapper.frontend import FrontendConfig, FrontendStats, open_recording, process, read_camera_file
+from papl_mapper.frontend.gt import detection_scores, track_match_precision
+from papl_mapper.frontend.lines import LineConfig, match_keyframe_lines
+from papl_mapper.synth.generate import SynthConfig, generate
+from papl_mapper.synth.project import visible_segments
+from papl_mapper.synth.scenes import make_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+GOAL_FPS = 30.0
+
+
+def machine() -> dict:
+    cpu = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "git_commit": commit,
+    }
+
+
+def recording_dir(cache: Path, width: int, height: int, seconds: float) -> tuple[Path, SynthConfig]:
+    cfg = SynthConfig(scene="corridor", width=width, height=height, seconds=seconds, noise_sigma=2.0)
+    out = cache / f"corridor_{width}x{height}_{seconds:g}s"
+    if not (out / "video.mp4").exists():
+        print(f"generating {out} ...", flush=True)
+        generate(cfg, out)
+    return out, cfg
+
+
+def decode_fps(path: Path) -> float:
+    t0 = time.perf_counter()
+    n = sum(1 for _ in open_recording(path))
+    return n / (time.perf_counter() - t0)
+
+
+def run(path: Path, config: FrontendConfig):
+    rec = open_recording(path / "video.mp4")
+    camera = read_camera_file(path / "camera.json")
+    stats = FrontendStats()
+    tracks = process(rec, camera, config, None, stats)
+    return tracks, stats
+
+
+def _line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    c = np.abs(np.sum(a * b, axis=-1)) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+    return np.degrees(np.arccos(np.clip(c, 0, 1)))
+
+
+def accuracy(path: Path, cfg: SynthConfig, tracks) -> dict:
+    """Segments, matches and VPs of a run against the synthetic ground truth."""
+    scene = make_scene(cfg.scene, cfg.seed)
+    camera = cfg.camera()
+    T_wc = read_tum(path / "gt" / "trajectory.tum").T_wc
+    min_len = LineConfig().min_length_px
+    prec, rec, ids_per_frame, gid_per_frame = [], [], [], []
+    vert_err, horiz_err = [], []
+    horizontal_axes = scene.axes[1:]
+    for f in range(len(tracks)):
+        T = T_wc[tracks.frame_index[f]]
+        idx, gt_xy = visible_segments(scene, camera, T, scene.segments, occlusion=True, min_length_px=min_len)
+        ids, xy, _ = tracks.lines_in(f)
+        p, r, assigned = detection_scores(xy, gt_xy)
+        if len(xy):
+            prec.append(p)
+        if len(gt_xy):
+            rec.append(r)
+        ids_per_frame.append(ids)
+        gid_per_frame.append(np.where(assigned >= 0, idx[np.maximum(assigned, 0)], -1))
+        R_cw = T[:3, :3].T
+        dirs = tracks.vp_dirs_c[f]
+        vi = int(tracks.vertical_vp[f]) if len(tracks.vertical_vp) else -1
+        if vi >= 0:
+            vert_err.append(float(_line_angle_deg(dirs[vi], R_cw @ scene.axes[0])))
+        for k, d in enumerate(dirs):
+            if k == vi or not np.all(np.isfinite(d)):
+                continue
+            horiz_err.append(float(np.min(_line_angle_deg(d[None], horizontal_axes @ R_cw.T))))
+    good, bad = track_match_precision(ids_per_frame, gid_per_frame)
+    # LBD matching between consecutive keyframes (the descriptors the frontend stored)
+    kfs = np.flatnonzero(tracks.is_keyframe)
+    kgood = kbad = 0
+    for a, b in zip(kfs[:-1], kfs[1:], strict=True):
+        sel_a = tracks.line_frame[tracks.line_desc_row] == a
+        sel_b = tracks.line_frame[tracks.line_desc_row] == b
+        ra, rb = tracks.line_desc_row[sel_a], tracks.line_desc_row[sel_b]
+        if len(ra) == 0 or len(rb) == 0:
+            continue
+        m = match_keyframe_lines(
+            tracks.line_xy[ra],
+            tracks.line_desc[sel_a],
+            tracks.line_xy[rb],
+            tracks.line_desc[sel_b],
+            LineConfig(),
+        )
+        ga = _gt_of_rows(ra, a, tracks, gid_per_frame)
+        gb = _gt_of_rows(rb, b, tracks, gid_per_frame)
+        on = (ga[m[:, 0]] >= 0) & (gb[m[:, 1]] >= 0)
+        kgood += int(np.sum(ga[m[on, 0]] == gb[m[on, 1]]))
+        kbad += int(np.sum(ga[m[on, 0]] != gb[m[on, 1]]))
+    vert_err = np.array(vert_err)
+    horiz_err = np.array(horiz_err)
+    return {
+        "segment_precision": round(float(np.mean(prec)), 4),
+        "segment_recall": round(float(np.mean(rec)), 4),
+        "track_match_precision": round(good / max(1, good + bad), 4),
+        "track_matches_on_gt": good + bad,
+        "keyframe_lbd_match_precision": round(kgood / max(1, kgood + kbad), 4),
+        "keyframe_lbd_matches_on_gt": kgood + kbad,
+        "vertical_err_deg_median": round(float(np.median(vert_err)), 3) if len(vert_err) else None,
+        "vertical_err_deg_p90": round(float(np.percentile(vert_err, 90)), 3) if len(vert_err) else None,
+        "vertical_found_fraction": round(len(vert_err) / len(tracks), 4),
+        "horizontal_err_deg_median": round(float(np.median(horiz_err)), 3) if len(horiz_err) else None,
+        "frames_vp_err_under_0p5deg": round(float(np.mean(vert_err < 0.5)), 4) if len(vert_err) else None,
+    }
+
+
+def _gt_of_rows(rows: np.ndarray, frame: int, tracks, gid_per_frame) -> np.ndarray:
+    """GT ids of observation rows of one frame."""
+    first = int(np.searchsorted(tracks.line_frame, frame))
+    return gid_per_frame[frame][rows - first]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=8.0, help="length of the recordings")
+    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "papl_frontend_bench")
+    ap.add_argument("--quick", action="store_true", help="default configuration only")
+    args = ap.parse_args()
+    args.cache.mkdir(parents=True, exist_ok=True)
+    load_before = os.getloadavg()
+    results: dict = {"machine": machine(), "recording": "papl_mapper.synth corridor, noise sigma 2, 30 fps"}
+    variants = {"default": FrontendConfig()}
+    if not args.quick:
+        variants["sequential"] = FrontendConfig(parallel=False)
+        variants["vp_stride_5"] = FrontendConfig(vp_stride=5)
+        variants["full_res_points"] = FrontendConfig(work_max_size=10_000)
+    rows = []
+    for width, height in ((1280, 720), (640, 480)):
+        path, cfg = recording_dir(args.cache, width, height, args.seconds)
+        key = f"{width}x{height}"
+        res = {"decode_only_fps": round(decode_fps(path / "video.mp4"), 1), "frames": cfg.n_frames}
+        for name, config in variants.items():
+            if name == "full_res_points" and width <= 640:
+                continue
+            tracks, stats = run(path, config)
+            fps = stats.frames / stats.wall_seconds
+            entry = {
+                "fps": round(fps, 2),
+                "ms_per_frame": round(1000 / fps, 2),
+                "step_ms_per_frame": {k: round(1000 * v / stats.frames, 2) for k, v in stats.seconds.items()},
+                "keyframes": stats.keyframes,
+                "points_per_frame": round(stats.points_per_frame, 1),
+                "segments_per_frame": round(stats.segments_per_frame, 1),
+                "vertical_source": stats.vertical_source,
+                "config_changes": {
+                    k: v
+                    for k, v in dataclasses.asdict(config).items()
+                    if v != dataclasses.asdict(FrontendConfig())[k]
+                },
+            }
+            if name == "default":
+                entry["accuracy"] = accuracy(path, cfg, tracks)
+            res[name] = entry
+            rows.append((key, name, entry))
+            print(f"{key:>9} {name:<16} {fps:6.2f} fps", flush=True)
+        results[key] = res
+    results["goal_fps"] = GOAL_FPS
+    results["load_average_before"] = [round(x, 2) for x in load_before]
+    results["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
+
+    steps = list(FrontendStats().seconds)
+    print()
+    print(f"{'size':>9} {'variant':<16} {'fps':>6} " + " ".join(f"{s[:10]:>10}" for s in steps))
+    for key, name, e in rows:
+        ms = e["step_ms_per_frame"]
+        print(f"{key:>9} {name:<16} {e['fps']:6.2f} " + " ".join(f"{ms[s]:10.2f}" for s in steps))
+    print("(ms per frame per step; lines run in a worker thread during points)")
+    for key in ("1280x720", "640x480"):
+        res = results[key]
+        print(f"{key}: decode only {res['decode_only_fps']} fps; accuracy {res['default']['accuracy']}")
+    print(f"load average before {results['load_average_before']}, after {results['load_average_after']}")
+    out = ROOT / "benchmarks" / "results" / "frontend_throughput.json"
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps(results, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
