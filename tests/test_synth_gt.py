@@ -164,6 +164,8 @@ def test_path_stays_in_free_space_and_returns(name, seconds):
     assert np.allclose(np.linalg.det(R), 1.0)
     # the camera looks roughly horizontally (small pitch and roll): its y axis points down
     assert (R[:, 2, 1] < -0.97).all()
+    pitch = np.degrees(np.arcsin(R[:, 2, 2]))  # elevation of the optical axis
+    assert np.abs(pitch - scene.pitch_deg).max() < 6.0
     yaw = np.unwrap(np.arctan2(R[:, 1, 2], R[:, 0, 2]))
     assert np.ptp(yaw) > math.radians(80), "the walk turns"
 

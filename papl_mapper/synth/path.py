@@ -100,7 +100,7 @@ def walkthrough(
         + 0.02 * _smooth_noise(rng, t, 0.05, 0.2)
     )
     yaw = yaw + math.radians(6.0) * _smooth_noise(rng, t, 0.05, 0.25)
-    pitch = math.radians(-4.0) + math.radians(1.5) * _smooth_noise(rng, t, 0.2, 1.2)
+    pitch = math.radians(scene.pitch_deg) + math.radians(1.5) * _smooth_noise(rng, t, 0.2, 1.2)
     roll = math.radians(1.5) * _smooth_noise(rng, t, 0.2, 1.2)
     T_wc = np.repeat(np.eye(4)[None], n_frames, axis=0)
     T_wc[:, :3, :3] = rotation_wc(yaw, pitch, roll)

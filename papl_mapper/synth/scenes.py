@@ -53,6 +53,7 @@ class Scene:
     route: np.ndarray  # (R, 2) closed loop of XY waypoints in free space, walked from index 0
     free_space: list[np.ndarray]  # convex CCW polygons (k, 2) whose union is walkable
     eye_height: float = 1.6
+    pitch_deg: float = -4.0  # mean camera pitch of the walker (positive looks up)
     background_bgr: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
     texels_per_m: float = 256.0  # texture resolution (the renderer tiles quads by TEXTURE_PERIOD)
@@ -160,7 +161,7 @@ class SceneBuilder:
         self._segments.append(np.stack([a, b]))
         self._seg_axis.append(axis)
 
-    def build(self, route, free_space, eye_height=1.6, background=(0.0, 0.0, 0.0)) -> Scene:
+    def build(self, route, free_space, eye_height=1.6, background=(0.0, 0.0, 0.0), pitch_deg=-4.0) -> Scene:
         q = self._quads
         corners = np.array([[p, p + u, p + u + v, p + v] for p, u, v, *_ in q])
         return Scene(
@@ -179,6 +180,7 @@ class SceneBuilder:
             route=np.asarray(route, float),
             free_space=[np.asarray(p, float) for p in free_space],
             eye_height=eye_height,
+            pitch_deg=pitch_deg,
             background_bgr=background,
             seed=self.seed,
         )
@@ -351,7 +353,7 @@ def atlanta(seed: int = 0) -> Scene:
     names = ["vertical"] + [f"h{int(y)}" for y in yaws] + [f"h{int(y + 90)}" for y in yaws]
     b = SceneBuilder("atlanta", dirs, names, seed, texels_per_m=128.0)
     rng = b.rng
-    ground = b.material("ground", (0.42, 0.44, 0.45), 0.35, 0.10)
+    ground = b.material("ground", (0.42, 0.44, 0.45), 0.25, 0.10)
     facades = [
         b.material(f"facade{i}", c, 0.25, 0.2)
         for i, c in enumerate(
@@ -409,7 +411,7 @@ def atlanta(seed: int = 0) -> Scene:
             [(8.0 * math.cos(2 * math.pi * i / 24), 8.0 * math.sin(2 * math.pi * i / 24)) for i in range(24)]
         )
     ]
-    return b.build(route, free, eye_height=1.6, background=(0.92, 0.80, 0.62))
+    return b.build(route, free, eye_height=1.6, background=(0.92, 0.80, 0.62), pitch_deg=7.0)
 
 
 # ---- garage ------------------------------------------------------------------------------------
