@@ -7,7 +7,8 @@ generated into a cache folder on first use. Throughput is frames / wall-clock se
 is the real-time figure; the per-step table is seconds of each step per frame ("lines" runs in
 parallel with "points"; "lines_wait" is the main thread waiting for it). Accuracy: segment
 detection precision/recall against the visible projected GT segments, frame-to-frame and
-keyframe LBD match precision, vanishing-direction errors against the GT axes.
+keyframe LBD match precision, vanishing-direction errors against the GT axes; and segment recall
+of the York Urban hand labels (../shared/data/yud_train, when present).
 
 The machine is shared with other jobs: the load average is recorded before and after; compare
 the variants of one run with each other (same load) rather than with other runs.
@@ -31,7 +32,7 @@ import numpy as np
 from papl_mapper.eval.trajectory import read_tum
 from papl_mapper.frontend import FrontendConfig, FrontendStats, open_recording, process, read_camera_file
 from papl_mapper.frontend.gt import detection_scores, track_match_precision
-from papl_mapper.frontend.lines import LineConfig, match_keyframe_lines
+from papl_mapper.frontend.lines import LineConfig, SegmentDetector, match_keyframe_lines
 from papl_mapper.synth.generate import SynthConfig, generate
 from papl_mapper.synth.project import visible_segments
 from papl_mapper.synth.scenes import make_scene
@@ -160,6 +161,35 @@ def accuracy(path: Path, cfg: SynthConfig, tracks) -> dict:
     }
 
 
+def yud_segments(root: Path) -> dict:
+    """EDLines and LSD on the York Urban training images against their hand-labelled segments."""
+    import cv2
+
+    out = {}
+    names = sorted(p.stem for p in (root / "images").iterdir())
+    for detector in ("edlines", "lsd"):
+        det = SegmentDetector(LineConfig(detector=detector))
+        prec, rec, seconds, count = [], [], 0.0, 0
+        for name in names:
+            img = cv2.imread(str(next((root / "images").glob(f"{name}.*"))), cv2.IMREAD_GRAYSCALE)
+            labels = np.loadtxt(root / "gt" / f"{name}_lines.txt")[:, :4]
+            t0 = time.perf_counter()
+            segs = det.detect(img)
+            seconds += time.perf_counter() - t0
+            count += len(segs)
+            p, r, _ = detection_scores(segs, labels)
+            prec.append(p)
+            rec.append(r)
+        out[detector] = {
+            "images": len(names),
+            "recall_of_labels": round(float(np.mean(rec)), 4),
+            "precision_vs_labels": round(float(np.mean(prec)), 4),
+            "ms_per_image": round(1000 * seconds / len(names), 2),
+            "segments_per_image": round(count / len(names), 1),
+        }
+    return out
+
+
 def _gt_of_rows(rows: np.ndarray, frame: int, tracks, gid_per_frame) -> np.ndarray:
     """GT ids of observation rows of one frame."""
     first = int(np.searchsorted(tracks.line_frame, frame))
@@ -210,6 +240,9 @@ def main() -> None:
             rows.append((key, name, entry))
             print(f"{key:>9} {name:<16} {fps:6.2f} fps", flush=True)
         results[key] = res
+    yud = ROOT.parent / "shared" / "data" / "yud_train"
+    if yud.is_dir():
+        results["yud_segments_3px_3deg"] = yud_segments(yud)
     results["goal_fps"] = GOAL_FPS
     results["load_average_before"] = [round(x, 2) for x in load_before]
     results["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
@@ -224,6 +257,8 @@ def main() -> None:
     for key in ("1280x720", "640x480"):
         res = results[key]
         print(f"{key}: decode only {res['decode_only_fps']} fps; accuracy {res['default']['accuracy']}")
+    if "yud_segments_3px_3deg" in results:
+        print(f"York Urban hand-labelled segments: {results['yud_segments_3px_3deg']}")
     print(f"load average before {results['load_average_before']}, after {results['load_average_after']}")
     out = ROOT / "benchmarks" / "results" / "frontend_throughput.json"
     out.parent.mkdir(exist_ok=True)

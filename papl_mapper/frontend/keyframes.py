@@ -18,7 +18,7 @@ class KeyframeConfig:
     """Settings of keyframe selection."""
 
     min_parallax_px: float = 20.0
-    """Median displacement of common point tracks (pixels of the processed image) that makes a keyframe."""
+    """Median displacement of common point tracks (work-image pixels, see FrontendConfig) for a keyframe."""
     min_survival: float = 0.6
     """A keyframe is made when fewer than this fraction of the last keyframe's tracks survive."""
     min_gap_frames: int = 3

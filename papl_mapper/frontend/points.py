@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class PointConfig:
-    """Settings of corner detection, replenishment and ORB re-association."""
+    """Settings of corner detection, replenishment and ORB re-association (pixels of the work image)."""
 
     max_points: int = 400
     """Most point tracks alive at once."""

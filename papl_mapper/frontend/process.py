@@ -78,8 +78,9 @@ class FrontendConfig:
     min_texture_std: float = 2.0
     """Frames whose gray-level standard deviation is below this are skipped as textureless."""
     work_max_size: int = 640
-    """Point tracking, ORB and LBD run on the frame downscaled so its longer side is at most this
-    (coordinates are mapped back to full resolution); segments are detected at full resolution."""
+    """Point tracking, ORB, LBD and keyframe parallax run on the frame downscaled so its longer side
+    is at most this (coordinates are mapped back to full resolution; pixel settings of points and
+    keyframes are in these work pixels); segments are detected at full resolution."""
     vp_stride: int = 1
     """Estimate vanishing directions on every n-th frame and on keyframes; frames between reuse the
     last estimate's directions and classify their own segments against them (1 = every frame)."""
@@ -212,13 +213,13 @@ class _Run:
             lines.step(segs, self._to_full(points.flow_from), self._to_full(points.flow_to))
         t6 = time.perf_counter()
         sec["line_tracking"] += t6 - t5
-        kf = self.selector.update(points.ids, uv, force=restart)
+        kf = self.selector.update(points.ids, points.uv, force=restart)
         t7 = time.perf_counter()
         sec["keyframes"] += t7 - t6
         row = len(self.frame_index)
         if kf:
             pids, pdesc = points.keyframe(small)
-            self.selector.set_reference(points.ids, uv)
+            self.selector.set_reference(points.ids, points.uv)
             lids, ldesc = lines.keyframe(small, self.lbd, self.work_scale)
             # descriptor rows: position of each described id among this frame's observations
             self.pd_row.append(self.n_points + _positions(points.ids, pids))
