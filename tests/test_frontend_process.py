@@ -171,3 +171,14 @@ def test_all_textureless_is_an_input_error(tmp_path):
     cam = Camera(160, 120, 150, 150, 79.5, 59.5)
     with pytest.raises(InputError, match="textureless"):
         process(open_recording(path), cam)
+
+
+def test_config_loads_from_toml_and_overrides(tmp_path):
+    from papl_mapper.config import load_config
+
+    p = tmp_path / "frontend.toml"
+    p.write_text('work_max_size = 480\n[lines]\ndetector = "lsd"\n[vp]\nmanhattan_only = true\n')
+    cfg = load_config(FrontendConfig, p, ["points.max_points=200", "keyframes.min_parallax_px=12.5"])
+    assert cfg.work_max_size == 480 and cfg.lines.detector == "lsd" and cfg.vp.manhattan_only
+    assert cfg.points.max_points == 200 and cfg.keyframes.min_parallax_px == 12.5
+    assert cfg.vp.track_gate_deg == FrontendConfig().vp.track_gate_deg

@@ -193,7 +193,8 @@ class Recording:
                 last_ok = index
                 yield Frame(index, t, self._prepare(image))
             announced = self.frame_count
-            if announced > 0 and index + 1 < announced and self.end_s is None:
+            # containers may count one frame more than FFmpeg delivers; more missing is a truncation
+            if announced > 0 and index + 1 < announced - 1 and self.end_s is None:
                 self._mark_stop(
                     last_ok if last_ok is not None else index,
                     f"the stream ended after {index + 1} of {announced} announced frames "
@@ -321,10 +322,7 @@ def open_recording(
         rec = _open_folder(path, fps, timestamps, max_size, common)
     else:
         rec = _open_video(path, max_size, common)
-    try:
-        first = next(iter(rec.frames()), None)
-    except InputError:
-        raise
+    first = next(iter(rec.frames()), None)
     if first is None:
         where = "" if start_s is None and end_s is None else f" in the time range {start_s}..{end_s} s"
         raise InputError(f"{path}: no decodable frame{where}; check the file and the time range")
