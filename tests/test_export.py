@@ -88,6 +88,7 @@ def _validate_gltf(path: Path) -> dict:
     report = json.loads(res.stdout)
     errors = [i for i in report["issues"]["messages"] if i["severity"] == 0]
     assert report["issues"]["numErrors"] == 0, errors[:5]
+    assert report["issues"]["numWarnings"] == 0, report["issues"]["messages"][:5]
     return report
 
 
@@ -201,8 +202,8 @@ def _validate_usd(path: Path) -> None:
 
     stage = Usd.Stage.Open(str(path))
     ctx = UsdValidation.ValidationContext(UsdValidation.ValidationRegistry().GetOrLoadAllValidators())
-    errors = [e for e in ctx.Validate(stage) if e.GetType() == UsdValidation.ValidationErrorType.Error]
-    assert not errors, [e.GetMessage() for e in errors]
+    issues = ctx.Validate(stage)
+    assert not issues, [(str(e.GetType()), e.GetMessage()) for e in issues]  # no errors, nor warnings
 
 
 def read_usd(path: Path) -> dict:
