@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -182,3 +184,20 @@ def test_config_loads_from_toml_and_overrides(tmp_path):
     assert cfg.work_max_size == 480 and cfg.lines.detector == "lsd" and cfg.vp.manhattan_only
     assert cfg.points.max_points == 200 and cfg.keyframes.min_parallax_px == 12.5
     assert cfg.vp.track_gate_deg == FrontendConfig().vp.track_gate_deg
+
+
+def test_presets_and_segments_at_reduced_size(video):
+    from papl_mapper.frontend import frontend_preset
+
+    path, cam, _, gts = video
+    assert frontend_preset("accurate") == FrontendConfig()
+    assert frontend_preset("realtime").vp_stride > 1
+    with pytest.raises(InputError, match="unknown frontend preset"):
+        frontend_preset("turbo")
+    cfg = dataclasses.replace(frontend_preset("realtime"), segments_max_size=320)
+    tracks = process(open_recording(path, end_s=0.3), cam, cfg)
+    on_gt = []
+    for f in range(len(tracks)):
+        _, xy, _ = tracks.lines_in(f)
+        on_gt.append(segment_match(xy, gts[tracks.frame_index[f]][0], dist_px=4.0) >= 0)
+    assert np.mean(np.concatenate(on_gt)) > 0.5  # endpoints mapped back to full-resolution pixels

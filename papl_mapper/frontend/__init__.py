@@ -17,7 +17,7 @@ from papl_mapper.frontend.keyframes import KeyframeConfig
 from papl_mapper.frontend.klt import FlowConfig
 from papl_mapper.frontend.lines import LineConfig, match_keyframe_lines
 from papl_mapper.frontend.points import PointConfig
-from papl_mapper.frontend.process import FrontendConfig, FrontendStats, process
+from papl_mapper.frontend.process import PRESETS, FrontendConfig, FrontendStats, frontend_preset, process
 from papl_mapper.frontend.video import Frame, Recording, open_recording
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "Frame",
     "FrontendConfig",
     "FrontendStats",
+    "PRESETS",
     "KeyframeConfig",
     "LineConfig",
     "PointConfig",
@@ -33,6 +34,7 @@ __all__ = [
     "Undistorter",
     "camera_for_recording",
     "fit_camera",
+    "frontend_preset",
     "guess_camera",
     "match_keyframe_lines",
     "open_recording",

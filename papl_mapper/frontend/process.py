@@ -9,6 +9,7 @@ Frames without texture (near-uniform) are skipped; their indices are in `Tracks.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -84,8 +85,26 @@ class FrontendConfig:
     vp_stride: int = 1
     """Estimate vanishing directions on every n-th frame and on keyframes; frames between reuse the
     last estimate's directions and classify their own segments against them (1 = every frame)."""
-    parallel: bool = True
-    """Detect segments in a worker thread while points are tracked (OpenCV releases the GIL)."""
+    segments_max_size: int = 0
+    """Detect segments on the frame downscaled to this longer side (0: full resolution). Faster on
+    large frames; endpoints are mapped back to full resolution, min_length_px is in these pixels."""
+    parallel: bool = False
+    """Detect segments in a worker thread while points are tracked. Off by default: on the 2-core
+    benchmark machine under load it was slower than sequential (OpenCV already uses its own threads)."""
+
+
+PRESETS = {
+    "accurate": {},
+    "realtime": {"segments_max_size": 640, "vp_stride": 3},
+}
+"""Named presets: changes to the FrontendConfig defaults ("accurate" is the default)."""
+
+
+def frontend_preset(name: str) -> FrontendConfig:
+    """The FrontendConfig of a named preset; InputError for an unknown name."""
+    if name not in PRESETS:
+        raise InputError(f"unknown frontend preset {name!r}; known: {', '.join(PRESETS)}")
+    return dataclasses.replace(FrontendConfig(), **PRESETS[name])
 
 
 @dataclass
@@ -175,6 +194,18 @@ class _Run:
         self.n_points = self.n_lines = 0
         self._t_last = time.perf_counter()
 
+    def _segments(self, gray: np.ndarray) -> np.ndarray:
+        """Segments (S, 4) in full-resolution pixels, detected at segments_max_size if set."""
+        h, w = gray.shape[:2]
+        limit = self.config.segments_max_size
+        if limit <= 0 or max(w, h) <= limit:
+            return self.detector.detect(gray)
+        s = limit / max(w, h)
+        size = (max(1, round(w * s)), max(1, round(h * s)))
+        small = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+        scale = np.array([size[0] / w, size[1] / h] * 2)
+        return (self.detector.detect(small) + 0.5) / scale - 0.5
+
     def _to_full(self, uv: np.ndarray) -> np.ndarray:
         """Work-image pixels (N, 2) -> full-resolution pixels (integer pixel centres)."""
         return (np.asarray(uv, np.float64) + 0.5) / self.work_scale - 0.5
@@ -198,12 +229,12 @@ class _Run:
             return f"frame {frame.index}: skipped (no texture)"
         points, lines = self.points, self.lines
         restart = self.prev_gray is None
-        pending = pool.submit(_timed, self.detector.detect, gray) if pool is not None else None
+        pending = pool.submit(_timed, self._segments, gray) if pool is not None else None
         points.step(small, self.prev_small, force_detect=restart)
         uv = self._to_full(points.uv)
         t4 = time.perf_counter()
         sec["points"] += t4 - t2
-        segs, line_seconds = pending.result() if pending is not None else _timed(self.detector.detect, gray)
+        segs, line_seconds = pending.result() if pending is not None else _timed(self._segments, gray)
         t5 = time.perf_counter()
         sec["lines"] += line_seconds
         sec["lines_wait"] += t5 - t4
