@@ -250,3 +250,16 @@ def test_bundled_samples_are_complete_and_say_how_they_were_made(name, frames):
     m = Map.load(out / "gt" / "map.papl")
     assert len(m.keyframes) == math.ceil(frames / KEYFRAME_EVERY) and len(m.lines) > 100
     assert sum(p.stat().st_size for p in out.rglob("*") if p.is_file()) < 4e6, "a few MB at most"
+
+
+def test_rerun_without_frames_removes_stale_frames_only(tmp_path):
+    out = tmp_path / "run"
+    cfg = SynthConfig(**{**TINY, "seconds": 0.3, "write_frames": True})
+    generate(cfg, out)
+    assert len(list((out / "frames").glob("*.png"))) == 3
+    generate(SynthConfig(**{**TINY, "seconds": 0.3}), out)
+    assert not (out / "frames").exists(), "frames of the earlier run would not match the new video"
+    (out / "frames").mkdir()
+    (out / "frames" / "notes.txt").write_text("mine")
+    generate(SynthConfig(**{**TINY, "seconds": 0.3}), out)
+    assert (out / "frames" / "notes.txt").exists(), "a folder holding other files is left alone"

@@ -206,3 +206,21 @@ def test_scenes_are_deterministic():
     assert [m.seed for m in a.materials] == [m.seed for m in b.materials]
     c = make_scene("corridor", 6)
     assert [m.seed for m in a.materials] != [m.seed for m in c.materials]
+
+
+AA_MEAN_ABS_DIFF = 3.0  # grey levels between 2x supersampling and a 4x reference
+AA_GAIN = 1.5  # 1x sampling must be at least this much further from the reference
+
+
+@pytest.mark.parametrize("name", SCENE_NAMES)
+def test_supersampling_approaches_a_4x_reference(name):
+    """Anti-aliasing: 2x supersampling is close to a 4x render, and closer than plain 1x sampling."""
+    scene = make_scene(name, 0)
+    cfg = SynthConfig(scene=name, width=160, height=120)
+    cam = cfg.camera()
+    _, T = walkthrough(scene, 60, 10.0, 0)
+    r4 = Renderer(scene, cam, 4)
+    ref = r4.render(T[30])[0] * 230
+    d2 = np.abs(Renderer(scene, cam, 2, r4.pyramids).render(T[30])[0] * 230 - ref).mean()
+    d1 = np.abs(Renderer(scene, cam, 1, r4.pyramids).render(T[30])[0] * 230 - ref).mean()
+    assert d2 < AA_MEAN_ABS_DIFF and d1 > AA_GAIN * d2, (d1, d2)

@@ -160,8 +160,9 @@ def generate(
         raise
     writer.release()
     os.replace(tmp_video, out / "video.mp4")
+    if frames_tmp is not None or _only_our_frames(out / "frames"):
+        shutil.rmtree(out / "frames", ignore_errors=True)  # stale frames of an earlier run
     if frames_tmp is not None:
-        shutil.rmtree(out / "frames", ignore_errors=True)
         os.replace(frames_tmp, out / "frames")
     _write_text(out / "timestamps.txt", "".join(f"{t:.9f}\n" for t in timestamps))
     _write_text(out / "camera.json", json.dumps(camera.to_dict(), indent=2) + "\n")
@@ -196,6 +197,15 @@ def _prepare_dir(out: Path) -> None:
         os.unlink(probe)
     except OSError as exc:
         raise InputError(f"{out}: cannot write there ({exc.strerror}); choose a writable --out") from exc
+
+
+def _only_our_frames(folder: Path) -> bool:
+    """Whether `folder` exists and holds nothing but NNNNNN.png frames (safe to replace)."""
+    if not folder.is_dir():
+        return False
+    return all(
+        p.is_file() and p.suffix == ".png" and p.stem.isdigit() and len(p.stem) == 6 for p in folder.iterdir()
+    )
 
 
 def _write_text(path: Path, text: str) -> None:

@@ -24,19 +24,19 @@ LIGHT_DIR = np.array([0.5, 0.3, 0.81]) / np.linalg.norm([0.5, 0.3, 0.81])
 def make_texture(mat: Material, texels_per_m: float, period: int = TEXTURE_PERIOD) -> np.ndarray:
     """(period, period, 3) float32 BGR periodic texture: soft-thresholded blobs plus fine detail."""
     rng = np.random.default_rng(mat.seed)
-    f = np.fft.fftfreq(period)
-    f2 = f[:, None] ** 2 + f[None, :] ** 2
+    f2 = np.fft.fftfreq(period)[:, None] ** 2 + np.fft.rfftfreq(period)[None, :] ** 2
 
     def band(sigma_px: float) -> np.ndarray:
-        noise = np.fft.fft2(rng.standard_normal((period, period)))
-        out = np.fft.ifft2(noise * np.exp(-2 * math.pi**2 * sigma_px**2 * f2)).real
-        return out / (out.std() + 1e-12)
+        """Periodic Gaussian-filtered white noise, unit standard deviation."""
+        noise = np.fft.rfft2(rng.standard_normal((period, period), dtype=np.float32))
+        out = np.fft.irfft2(noise * np.exp(-2 * math.pi**2 * sigma_px**2 * f2), s=(period, period))
+        return (out / (out.std() + 1e-12)).astype(np.float32)
 
     blob_px = max(mat.blob_scale_m * texels_per_m, 1.0)
     blobs = np.tanh(4.0 * band(blob_px / 2))
     detail = band(max(blob_px / 8, 0.7))
     specks = np.clip(band(1.5) - 2.3, 0, 0.5) * 2  # small sharp spots: corners at close range
-    tint = np.stack([band(blob_px) for _ in range(3)], axis=-1)
+    tint = band(blob_px)[..., None] * rng.normal(0, 1, 3).astype(np.float32)  # slow colour drift
     base = np.asarray(mat.color_bgr, np.float32)
     lum = 1 + mat.contrast * (0.7 * blobs + 0.25 * detail - 1.5 * specks)
     tex = base * lum[..., None] * (1 + 0.08 * mat.contrast * tint)
@@ -57,7 +57,14 @@ def texture_pyramid(tex: np.ndarray) -> list[np.ndarray]:
 class Renderer:
     """Render a scene from camera poses T_wc (camera -> world) with a given pinhole camera."""
 
-    def __init__(self, scene: Scene, camera: Camera, supersample: int = 2):
+    def __init__(
+        self,
+        scene: Scene,
+        camera: Camera,
+        supersample: int = 2,
+        textures: list[list[np.ndarray]] | None = None,
+    ):
+        """`textures`: the `pyramids` of another renderer of the same scene, to skip rebuilding them."""
         self.scene = scene
         self.camera = camera
         self.ss = int(supersample)
@@ -72,7 +79,9 @@ class Renderer:
         )
         self.K_inv = np.linalg.inv(self.K)
         self.ppm = scene.texels_per_m
-        self.pyramids = [texture_pyramid(make_texture(m, self.ppm)) for m in scene.materials]
+        if textures is None:
+            textures = [texture_pyramid(make_texture(m, self.ppm)) for m in scene.materials]
+        self.pyramids = textures
         self.emissive = np.array([m.emissive for m in scene.materials])
         qc = scene.quad_corners
         self.normals = scene.normals
