@@ -263,3 +263,12 @@ def test_rerun_without_frames_removes_stale_frames_only(tmp_path):
     (out / "frames" / "notes.txt").write_text("mine")
     generate(SynthConfig(**{**TINY, "seconds": 0.3}), out)
     assert (out / "frames" / "notes.txt").exists(), "a folder holding other files is left alone"
+
+
+def test_frames_folder_with_other_files_is_refused(tmp_path):
+    out = tmp_path / "run"
+    (out / "frames").mkdir(parents=True)
+    (out / "frames" / "holiday.jpg").write_bytes(b"x")
+    with pytest.raises(InputError, match="other than frames"):
+        generate(SynthConfig(**{**TINY, "seconds": 0.3, "write_frames": True}), out)
+    assert (out / "frames" / "holiday.jpg").exists() and not (out / "video.mp4").exists()

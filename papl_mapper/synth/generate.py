@@ -126,6 +126,10 @@ def generate(
     config.validate()
     out = Path(out_dir)
     _prepare_dir(out)
+    if config.write_frames and (out / "frames").exists() and not _only_our_frames(out / "frames"):
+        raise InputError(
+            f"{out / 'frames'}: holds files other than frames; move them or choose another --out"
+        )
     scene = make_scene(config.scene, config.seed)
     camera = config.camera()
     n = config.n_frames
@@ -159,18 +163,30 @@ def generate(
             shutil.rmtree(frames_tmp, ignore_errors=True)
         raise
     writer.release()
-    os.replace(tmp_video, out / "video.mp4")
+    # everything is staged under temporary names, then renamed in one quick run at the end
+    staged = [(tmp_video, out / "video.mp4")]
+    try:
+        staged.append(_stage_text(out / "timestamps.txt", "".join(f"{t:.9f}\n" for t in timestamps)))
+        staged.append(_stage_text(out / "camera.json", json.dumps(camera.to_dict(), indent=2) + "\n"))
+        staged.append(_stage_text(out / "gt" / "trajectory.tum", trajectory_tum(timestamps, T_wc)))
+        staged.append(_stage_text(out / "gt" / "segments.txt", segments_txt(scene)))
+        axes = {"directions": scene.axes.tolist(), "vertical_index": 0, "names": scene.axis_names}
+        staged.append(_stage_text(out / "gt" / "axes.json", json.dumps(axes, indent=2) + "\n"))
+        tmp_map = out / "gt" / ".map.tmp.papl"
+        gt_map(scene, camera, timestamps, T_wc, config).save(tmp_map)
+        staged.append((tmp_map, out / "gt" / "map.papl"))
+    except BaseException:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+        if frames_tmp is not None:
+            shutil.rmtree(frames_tmp, ignore_errors=True)
+        raise
+    for tmp, final in staged:
+        os.replace(tmp, final)
     if frames_tmp is not None or _only_our_frames(out / "frames"):
-        shutil.rmtree(out / "frames", ignore_errors=True)  # stale frames of an earlier run
+        shutil.rmtree(out / "frames", ignore_errors=True)  # frames of an earlier run
     if frames_tmp is not None:
         os.replace(frames_tmp, out / "frames")
-    _write_text(out / "timestamps.txt", "".join(f"{t:.9f}\n" for t in timestamps))
-    _write_text(out / "camera.json", json.dumps(camera.to_dict(), indent=2) + "\n")
-    _write_text(out / "gt" / "trajectory.tum", trajectory_tum(timestamps, T_wc))
-    _write_text(out / "gt" / "segments.txt", segments_txt(scene))
-    axes = {"directions": scene.axes.tolist(), "vertical_index": 0, "names": scene.axis_names}
-    _write_text(out / "gt" / "axes.json", json.dumps(axes, indent=2) + "\n")
-    gt_map(scene, camera, timestamps, T_wc, config).save(out / "gt" / "map.papl")
     length = float(np.linalg.norm(np.diff(T_wc[:, :3, 3], axis=0), axis=1).sum())
     info = {
         "scene": config.scene,
@@ -183,7 +199,8 @@ def generate(
         "segments": int(len(scene.segments)),
         "axes": scene.axis_names,
     }
-    _write_text(out / "scene.json", json.dumps(info, indent=2) + "\n")
+    tmp, final = _stage_text(out / "scene.json", json.dumps(info, indent=2) + "\n")
+    os.replace(tmp, final)
     return out
 
 
@@ -208,10 +225,11 @@ def _only_our_frames(folder: Path) -> bool:
     )
 
 
-def _write_text(path: Path, text: str) -> None:
+def _stage_text(path: Path, text: str) -> tuple[Path, Path]:
+    """Write text under a temporary name beside `path`; return (temporary, final) for the rename."""
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(text)
-    os.replace(tmp, path)
+    return tmp, path
 
 
 def trajectory_tum(timestamps: np.ndarray, T_wc: np.ndarray) -> str:
