@@ -14,7 +14,7 @@ from papl_mapper.frontend.descriptors import hamming, hamming_pairs
 from papl_mapper.frontend.gt import detection_scores
 from papl_mapper.frontend.klt import FlowConfig
 from papl_mapper.frontend.lines import LBD, LineConfig, LineTracker, SegmentDetector, match_keyframe_lines
-from papl_mapper.frontend.motion import relative_rotation
+from papl_mapper.frontend.motion import relative_rotation, rotation_from_bearings
 from papl_mapper.frontend.points import PointConfig, PointTracker
 
 YUD_NAMES = ("P1020177", "P1020819", "P1020831", "P1020839")
@@ -22,6 +22,7 @@ MIN_YUD_RECALL = 0.4  # hand-labelled segments at least half covered (3 px, 3 de
 SHIFT = np.array([3.3, -2.1])
 MAX_SHIFT_ERR_PX = 0.3  # median
 MIN_MATCH_PRECISION = 0.95
+VERTICAL_TRANSPORT_TOL_DEG = {0.0: 0.05, 1.0: 0.1}  # noise px -> carried vertical error (no rotation: 0.68)
 ROT_TOL_DEG = {0.0: 0.05, 1.0: 0.5}  # noise px -> largest rotation error (RANSAC E, no refinement)
 
 
@@ -138,3 +139,21 @@ def test_relative_rotation_known_answer(noise, translation):
 def test_relative_rotation_refuses_too_few_points():
     K = np.eye(3)
     assert relative_rotation(np.zeros((5, 2)), np.ones((5, 2)), K) is None
+
+
+@pytest.mark.parametrize("noise", [0.0, 1.0])
+def test_rotation_from_bearings_carries_the_vertical(noise):
+    """Rotation-only fit under walking-like translation: the transported vertical stays accurate."""
+    rng = np.random.default_rng(2)
+    K = np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]])
+    X = np.column_stack([rng.uniform(-2, 2, 300), rng.uniform(-1.5, 1.5, 300), rng.uniform(2, 6, 300)])
+    R = _rot([0.3, 1.0, -0.2], 2.0)
+    t = np.array([0.01, 0.0, 0.03])  # a frame of walking: forward and a little sideways, no vertical
+    Xb = X @ R.T + t
+    ua = (X @ K.T)[:, :2] / X[:, 2:3] + rng.normal(0, noise, (300, 2))
+    ub = (Xb @ K.T)[:, :2] / Xb[:, 2:3] + rng.normal(0, noise, (300, 2))
+    ub[:20] += rng.uniform(-30, 30, (20, 2))
+    est = rotation_from_bearings(ua, ub, K)
+    up = np.array([0.0, -1.0, 0.0])
+    err = np.degrees(np.arccos(np.clip(abs((est @ up) @ (R @ up)), -1, 1)))
+    assert err < VERTICAL_TRANSPORT_TOL_DEG[noise]

@@ -56,6 +56,35 @@ def relative_rotation(
     return R if angle <= max_angle_deg else None
 
 
+def rotation_from_bearings(
+    uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, iterations: int = 4, scale_px: float = 2.0
+) -> np.ndarray | None:
+    """Least-squares rotation (Kabsch, robustly reweighted) with x_b = R x_a, ignoring translation.
+
+    Fast (no RANSAC). Translation parallax leaks into the rotation mostly as yaw for sideways and
+    forward walking, which barely moves the vertical; used to carry the vertical prior.
+    """
+    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
+    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
+    if len(uv_a) < 3:
+        return None
+    Kinv = np.linalg.inv(K)
+    a = np.column_stack([uv_a, np.ones(len(uv_a))]) @ Kinv.T
+    b = np.column_stack([uv_b, np.ones(len(uv_b))]) @ Kinv.T
+    a /= np.linalg.norm(a, axis=1)[:, None]
+    b /= np.linalg.norm(b, axis=1)[:, None]
+    w = np.ones(len(a))
+    c = scale_px / K[0, 0]  # residual scale in radians
+    R = np.eye(3)
+    for _ in range(iterations):
+        U, _, Vt = np.linalg.svd((b * w[:, None]).T @ a)
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+        R = U @ D @ Vt
+        r = np.linalg.norm(b - a @ R.T, axis=1)
+        w = 1.0 / (1.0 + (r / c) ** 2)  # Cauchy weights
+    return R
+
+
 def _rotation_from_homography(
     uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, threshold_px: float, min_inlier_ratio: float
 ) -> np.ndarray | None:
