@@ -40,8 +40,8 @@ from papl_mapper.tracks import Tracks
 log = logging.getLogger(__name__)
 
 ProgressCallback = Callable[[int, int, str], None]
-# seconds per step; "lines" runs in a worker thread during "points", "lines_wait" is the main
-# thread waiting for it, "decode" the main thread waiting for the decoder thread
+# seconds per step; with parallel=True "lines" runs in a worker thread during "points" and
+# "lines_wait" is the main thread waiting for it; "decode" is waiting for the decoder thread
 STEPS = (
     "decode",
     "convert",
@@ -239,7 +239,8 @@ class _Run:
         segs, line_seconds = pending.result() if pending is not None else _timed(self._segments, gray)
         t5 = time.perf_counter()
         sec["lines"] += line_seconds
-        sec["lines_wait"] += t5 - t4
+        if pending is not None:
+            sec["lines_wait"] += t5 - t4
         if restart:
             lines.step(segs, None, None)
         else:
