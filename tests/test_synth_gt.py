@@ -3,12 +3,16 @@ rendered frames, GT points onto rendered surfaces, and the paths stay in free sp
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
+from papl_mapper.map import Camera
 from papl_mapper.synth import SynthConfig, make_scene, tracks_from_scene, walkthrough
 from papl_mapper.synth.project import occluded, project, visible_segments
 from papl_mapper.synth.render import Renderer
@@ -77,6 +81,57 @@ def edge_scores(cam, img, depth, T_wc, scene) -> tuple[int, int]:
         tested += 1
         passed += bool(on >= MIN_EDGE_GRADIENT and on >= EDGE_RATIO * min(left, right))
     return passed, tested
+
+
+def edge_offsets(cam, img, depth, T_wc, scene) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel offsets (K,) of the gradient peaks of strong isolated GT edges along their normals (K, 2)."""
+    gx, gy = _gray_gradient(img)
+    sidx, xy = visible_segments(scene, cam, T_wc, scene.segments, occlusion=True, min_length_px=40)
+    steps = np.arange(-2.0, 2.01, 0.25)
+    offsets, normals = [], []
+    for i, s in enumerate(sidx):
+        if _has_close_parallel(xy, i):
+            continue  # two edges within the profile window (a thin stripe) bias each other's peak
+        a, b = scene.segments[s]
+        uv, z = project(cam, T_wc, a + np.linspace(0.1, 0.9, 30)[:, None] * (b - a))
+        m = 5
+        ok = (z > 0.2) & (uv[:, 0] > m) & (uv[:, 0] < cam.width - 1 - m) & (uv[:, 1] > m)
+        ok &= uv[:, 1] < cam.height - 1 - m
+        if ok.sum() < 10:
+            continue
+        uv = uv[ok]
+        t = (uv[-1] - uv[0]) / np.linalg.norm(uv[-1] - uv[0])
+        n = np.array([-t[1], t[0]])
+        prof = np.stack(
+            [np.abs(_bilinear(gx, uv + k * n) * n[0] + _bilinear(gy, uv + k * n) * n[1]) for k in steps]
+        )
+        mean = prof.mean(axis=1)  # (steps,) gradient profile across the edge, averaged along it
+        i = int(np.argmax(mean))
+        if not 0 < i < len(steps) - 1 or mean[i] < MIN_EDGE_GRADIENT:
+            continue
+        y0, y1, y2 = mean[i - 1 : i + 2]
+        peak = steps[i] + 0.25 * 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2)  # parabola through the top three
+        offsets.append(peak)
+        normals.append(n)
+    return np.array(offsets), np.array(normals).reshape(-1, 2)
+
+
+def _has_close_parallel(xy: np.ndarray, i: int, max_px: float = 5.0, max_deg: float = 10.0) -> bool:
+    """Whether another observed segment runs nearly parallel within max_px of segment i's midpoint."""
+    p, q = xy[:, :2], xy[:, 2:]
+    d = q - p
+    u = d / np.linalg.norm(d, axis=1, keepdims=True)
+    parallel = np.abs(u @ u[i]) > math.cos(math.radians(max_deg))
+    mid = (p[i] + q[i]) / 2
+    t = np.clip(((mid - p) * d).sum(1) / (d * d).sum(1), 0, 1)
+    near = np.linalg.norm(p + t[:, None] * d - mid, axis=1) < max_px
+    near[i] = False
+    return bool((parallel & near).any())
+
+
+def global_shift(offsets: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Least-squares image shift (2,) explaining per-edge normal offsets: offset_i = shift . n_i."""
+    return np.linalg.lstsq(normals, offsets, rcond=None)[0]
 
 
 @pytest.fixture(scope="module", params=SCENE_NAMES)
@@ -224,3 +279,55 @@ def test_supersampling_approaches_a_4x_reference(name):
     d2 = np.abs(Renderer(scene, cam, 2, r4.pyramids).render(T[30])[0] * 230 - ref).mean()
     d1 = np.abs(Renderer(scene, cam, 1, r4.pyramids).render(T[30])[0] * 230 - ref).mean()
     assert d2 < AA_MEAN_ABS_DIFF and d1 > AA_GAIN * d2, (d1, d2)
+
+
+MAX_SHIFT_PX = 0.1  # systematic shift of rendered edges against projected GT (pixel-centre convention)
+MAX_MEDIAN_OFFSET_PX = 0.1
+
+
+def test_rendered_edges_sit_on_the_gt_to_a_tenth_of_a_pixel(rendered):
+    scene, cam, frames = rendered
+    off, nrm = [], []
+    for T, img, depth in frames:
+        o, n = edge_offsets(cam, img, depth, T, scene)
+        off.append(o)
+        nrm.append(n)
+    off, nrm = np.concatenate(off), np.concatenate(nrm)
+    assert len(off) >= 8, f"{scene.name}: only {len(off)} strong edges"
+    assert np.linalg.norm(global_shift(off, nrm)) < MAX_SHIFT_PX
+    assert np.median(np.abs(off)) < MAX_MEDIAN_OFFSET_PX
+    # and the measurement sees a half-pixel shift of the camera
+    T, img, depth = frames[0]
+    shifted = cv2.warpAffine(img, np.float32([[1, 0, 0.5], [0, 1, 0.0]]), (cam.width, cam.height))
+    o, n = edge_offsets(cam, shifted, depth, T, scene)
+    assert abs(global_shift(o, n)[0] - 0.5) < 0.15
+
+
+def test_sample_video_edges_sit_on_the_gt():
+    """The bundled video itself (mp4, noise, blur, exposure) against its GT files, to a fraction of a px."""
+    root = Path(__file__).resolve().parents[1] / "samples" / "tiny"
+    if not (root / "video.mp4").is_file():
+        pytest.skip("samples/tiny is not bundled")
+    cam = Camera.from_dict(json.loads((root / "camera.json").read_text()))
+    tum = np.loadtxt(root / "gt" / "trajectory.tum")
+    info = json.loads((root / "scene.json").read_text())
+    scene = make_scene(info["scene"], info["seed"])
+    seg = np.loadtxt(root / "gt" / "segments.txt")
+    assert np.allclose(seg[:, :6].reshape(-1, 2, 3), scene.segments, atol=1e-6)
+    cap = cv2.VideoCapture(str(root / "video.mp4"))
+    off, nrm = [], []
+    for f in range(0, 75, 15):
+        cap.set(cv2.CAP_PROP_POS_FRAMES, f)
+        ok, frame = cap.read()
+        assert ok
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat(tum[f, 4:]).as_matrix()
+        T[:3, 3] = tum[f, 1:4]
+        depth = np.full((cam.height, cam.width), np.inf, np.float32)
+        o, n = edge_offsets(cam, frame.astype(np.float32) / 230, depth, T, scene)
+        off.append(o)
+        nrm.append(n)
+    off, nrm = np.concatenate(off), np.concatenate(nrm)
+    assert len(off) >= 20
+    assert np.linalg.norm(global_shift(off, nrm)) < 2 * MAX_SHIFT_PX
+    assert np.median(np.abs(off)) < 2 * MAX_MEDIAN_OFFSET_PX

@@ -18,6 +18,8 @@ from papl_mapper.map import Camera
 from papl_mapper.synth.scenes import TEXTURE_PERIOD, Material, Scene
 
 NEAR = 0.05  # near clipping plane in metres
+_ONE = np.full((1, 1), 255, np.uint8)  # source of the exact coverage lookup (read-only)
+_ONE.setflags(write=False)
 LIGHT_DIR = np.array([0.5, 0.3, 0.81]) / np.linalg.norm([0.5, 0.3, 0.81])
 
 
@@ -87,6 +89,9 @@ class Renderer:
         self.normals = scene.normals
         self.tile_corners, self.tile_parent, self.tile_range = _tiles(scene, self.ppm)
         self.tile_ab = _tex_ab(self.tile_corners, scene, self.tile_parent)
+        self.quad_size = np.stack(
+            [np.linalg.norm(qc[:, 1] - qc[:, 0], axis=1), np.linalg.norm(qc[:, 3] - qc[:, 0], axis=1)], axis=1
+        )
         self.tex_ab = _tex_ab(qc, scene, np.arange(len(qc)))  # (Q, 4, 2) metres in the texture frame
         self.background = np.clip(np.asarray(scene.background_bgr) * 255 / 1.5, 0, 255).astype(np.uint8)
 
@@ -151,9 +156,13 @@ class Renderer:
             if x1 <= x0 or y1 <= y0:
                 continue
             w, h = x1 - x0, y1 - y0
-            mask = np.zeros((h, w), np.uint8)
-            pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
-            cv2.fillPoly(mask, [pts], 255, lineType=cv2.LINE_8, shift=4)
+            mask = self._coverage(q, R, t, x0, y0, w, h)
+            if len(pc) != 4 or (pc[:, 2] < Pc[q, :, 2] - 1e-12).any():  # near-clipped: bound by the polygon
+                clip = np.zeros((h, w), np.uint8)
+                pts = [np.round((uv - [x0, y0]) * 16).astype(np.int32)]
+                cv2.fillPoly(clip, pts, 255, lineType=cv2.LINE_8, shift=4)
+                cv2.polylines(clip, pts, True, 255, thickness=3, lineType=cv2.LINE_8, shift=4)
+                mask = cv2.bitwise_and(mask, clip)
             # inverse depth of pixel (u, v): (n_c . K^-1 [u v 1]) / d_c, affine in u and v
             a, b, c = (self.K_inv.T @ n_c[q]) / d_c[q]
             inv_x = np.float32(a) * xs_all[x0:x1]
@@ -174,6 +183,28 @@ class Renderer:
             cv2.copyTo(warped, m, img[y0 : y0 + h, x0 : x0 + w])  # writes through the views
             cv2.copyTo(invz, m, zb)
         return img, zbuf
+
+    def _coverage(self, q, R, t, x0, y0, w, h) -> np.ndarray:
+        """(h, w) uint8 mask of the pixels whose centre sees quad q: exact, from the inverse homography.
+
+        A 1 x 1 source image looked up with nearest-neighbour rounding is 255 exactly where the
+        quad coordinate (a - a0) / |u| - 1/2 rounds to 0, that is for a in [a0, a0 + |u|) (same for b).
+        """
+        sc = self.scene
+        o = R @ sc.tex_origin[q] + t
+        H_ab = self.K @ np.column_stack([R @ sc.tex_u[q], R @ sc.tex_v[q], o])  # metres (a, b) -> pixels
+        a0, b0 = self.tex_ab[q, 0]
+        lu, lv = self.quad_size[q]
+        S = np.array([[1 / lu, 0, -a0 / lu - 0.5], [0, 1 / lv, -b0 / lv - 0.5], [0, 0, 1]])
+        shift = np.array([[1.0, 0, x0], [0, 1, y0], [0, 0, 1]])
+        return cv2.warpPerspective(
+            _ONE,
+            S @ np.linalg.inv(H_ab) @ shift,
+            (w, h),
+            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
 
     def _texture(self, q, R, t, pc, ab, x0, y0, w, h) -> np.ndarray:
         """(h, w, 3) uint8 texture of quad q over the pixel rect at (x0, y0), assembled from its tiles.
