@@ -40,6 +40,7 @@ class KeyframeSelector:
         self._frame = -1
         self.last_parallax_px = 0.0
         self.last_survival = 1.0
+        self.last_reason = ""  # why the last frame became a keyframe ("" if it did not)
 
     def update(self, ids: np.ndarray, uv: np.ndarray, force: bool = False) -> bool:
         """Feed one frame's point tracks (ids (N,), pixels (N, 2)); True if it is a keyframe."""
@@ -48,6 +49,7 @@ class KeyframeSelector:
         ids = np.asarray(ids, np.int64)
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         is_kf = force or self._last is None
+        self.last_reason = "forced" if force else ("first" if self._last is None else "")
         if not is_kf:
             gap = self._frame - self._last
             common, ia, ib = np.intersect1d(self._ids, ids, assume_unique=True, return_indices=True)
@@ -56,12 +58,14 @@ class KeyframeSelector:
                 float(np.median(np.linalg.norm(uv[ib] - self._uv[ia], axis=1))) if len(common) else 0.0
             )
             if gap >= cfg.min_gap_frames:
-                is_kf = (
-                    self.last_parallax_px >= cfg.min_parallax_px
-                    or self.last_survival < cfg.min_survival
-                    or len(common) < cfg.min_common_tracks
-                    or (cfg.max_gap_frames > 0 and gap >= cfg.max_gap_frames)
+                reasons = (
+                    ("parallax", self.last_parallax_px >= cfg.min_parallax_px),
+                    ("survival", self.last_survival < cfg.min_survival),
+                    ("few_tracks", len(common) < cfg.min_common_tracks),
+                    ("max_gap", cfg.max_gap_frames > 0 and gap >= cfg.max_gap_frames),
                 )
+                self.last_reason = next((name for name, hit in reasons if hit), "")
+                is_kf = bool(self.last_reason)
         if is_kf:
             self._ids, self._uv, self._last = ids.copy(), uv.copy(), self._frame
         return is_kf

@@ -117,6 +117,7 @@ class FrontendStats:
     frames: int = 0
     skipped: int = 0
     keyframes: int = 0
+    keyframe_reasons: dict[str, int] = field(default_factory=dict)  # first/forced/parallax/survival/...
     points_per_frame: float = 0.0
     segments_per_frame: float = 0.0
     vp_failures: int = 0
@@ -248,6 +249,9 @@ class _Run:
         t6 = time.perf_counter()
         sec["line_tracking"] += t6 - t5
         kf = self.selector.update(points.ids, points.uv, force=restart)
+        if kf:
+            reasons = self.stats.keyframe_reasons
+            reasons[self.selector.last_reason] = reasons.get(self.selector.last_reason, 0) + 1
         t7 = time.perf_counter()
         sec["keyframes"] += t7 - t6
         row = len(self.frame_index)
