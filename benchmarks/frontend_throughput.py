@@ -210,6 +210,12 @@ def yud_segments(root: Path) -> dict:
     return out
 
 
+def _mean_track_length(track_ids: np.ndarray) -> float:
+    """Mean number of observations per track id."""
+    counts = np.bincount(track_ids)
+    return float(counts[counts > 0].mean()) if len(counts) else 0.0
+
+
 def _has_contrast(gray: np.ndarray, segs: np.ndarray, min_gradient: float = 40.0) -> np.ndarray:
     """(S,) True where the median Sobel magnitude along the segment (3x3 max) exceeds min_gradient."""
     import cv2
@@ -268,6 +274,10 @@ def main() -> None:
                 "points_per_frame": round(stats.points_per_frame, 1),
                 "segments_per_frame": round(stats.segments_per_frame, 1),
                 "vertical_source": stats.vertical_source,
+                "keyframe_reasons": stats.keyframe_reasons,
+                "point_track_length_frames_mean": round(_mean_track_length(tracks.point_track), 2),
+                "line_track_length_frames_mean": round(_mean_track_length(tracks.line_track), 2),
+                "line_tracks_5_frames_or_longer": int(np.sum(np.bincount(tracks.line_track) >= 5)),
                 "config_changes": {
                     k: v
                     for k, v in dataclasses.asdict(config).items()
