@@ -41,9 +41,16 @@ class BAConfig:
     structural_lines: Literal["anchored", "fixed_direction"] = "anchored"
     """How ANCHORED lines are optimised: the paper's 3-parameter form (shared axis + inverse depth), or the
     2-parameter baseline of Xu et al. 2022 (direction held at its axis, 2-dof position; for comparisons)."""
+    anchor_bearing: Literal["observation", "estimate"] = "observation"
+    """The ray an anchored line is held on: through the observed segment midpoint in the reference keyframe
+    (the paper; unbiased, but that one observation's noise is never averaged out), or through the point of
+    the current line estimate nearest that midpoint (as good as the estimate, e.g. a multi-view
+    triangulation; a poor estimate's error stays)."""
     optimize_poses: bool = True
     """False holds every keyframe pose at its value (e.g. the fixed-pose experiment)."""
     optimize_axes: bool = True
     """False holds the principal axes at their values."""
-    scale_prior_sigma: float = 1e-4
-    """Monocular gauge: relative sigma of the prior holding the distance between the two gauge keyframes."""
+    scale_prior_sigma: float = 1e-2
+    """Monocular gauge: relative sigma of the prior holding the distance between the two gauge keyframes.
+    The data carry no scale, so the optimum meets the prior exactly whatever its sigma; a stiff sigma
+    (1e-4) made Levenberg-Marquardt stall on pose-noise starts (measured), 1e-2 does not."""

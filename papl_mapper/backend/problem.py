@@ -281,7 +281,15 @@ def _build_lines(
     stored = np.full(M, -1, np.int64)
     has_ref = lines.ref_keyframe_id >= 0
     stored[has_ref] = _rows_of(m.keyframes.ids, lines.ref_keyframe_id[has_ref])
-    b_all, r_all, sin_all = geo.anchor_from_observation(o_xy, K, T[o_kf], L0[o_row])
+    anchor_xy = o_xy
+    if config.anchor_bearing == "estimate" and len(o_xy):
+        # the observed midpoint moved onto the current line's image: the ray then meets the current line
+        l = geo.project_line(K, geo.plucker_to_camera(L0[o_row], T[o_kf]))
+        mid = (o_xy[:, :2] + o_xy[:, 2:]) / 2.0
+        s2 = np.maximum(np.sum(l[:, :2] ** 2, 1), 1e-300)
+        foot = mid - ((np.sum(l[:, :2] * mid, 1) + l[:, 2]) / s2)[:, None] * l[:, :2]
+        anchor_xy = np.concatenate([foot, foot], 1)
+    b_all, r_all, sin_all = geo.anchor_from_observation(anchor_xy, K, T[o_kf], L0[o_row])
     cand = needs_ref[o_row] & np.isfinite(r_all) & (r_all > 0)
     cand &= sin_all > np.sin(np.radians(config.min_ray_angle_deg))
     prefer = (o_kf == stored[o_row]).astype(np.int64)

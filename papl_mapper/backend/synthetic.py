@@ -34,6 +34,11 @@ class SceneSpec:
     obs_noise_px: float = 0.0
     max_views: int = 0
     """If > 0, each landmark is observed by at most this many consecutive keyframes (sparse, large maps)."""
+    path_amplitude: float = 1.0
+    """Scale of the lateral and vertical wiggle of the camera path (a straight path leaves lines along it
+    unobservable)."""
+    line_direction_noise_deg: float = 0.0
+    """Structural lines only approximately parallel to their axis (the paper's toy data)."""
     seed: int = 0
 
 
@@ -45,7 +50,8 @@ def make_scene(spec: SceneSpec) -> Map:
     N = spec.n_keyframes
     s = np.arange(N) * spec.step
     length = max(s[-1], 1.0)
-    C = np.stack([s, 0.3 * np.sin(s / max(length, 1e-9) * np.pi), 0.2 * np.cos(s * 0.7)], 1)
+    amp = spec.path_amplitude
+    C = np.stack([s, amp * 0.3 * np.sin(s / max(length, 1e-9) * np.pi), amp * 0.2 * np.cos(s * 0.7)], 1)
     T = np.stack(
         [
             geo.make_T(
@@ -61,7 +67,8 @@ def make_scene(spec: SceneSpec) -> Map:
     mids, dirs, labels = [], [], []
     for a, n in enumerate(spec.lines_per_axis):
         mids.append(rng.uniform(lo, hi, (n, 3)))
-        dirs.append(np.repeat(axes[a][None], n, 0))
+        tilt = geo.so3_exp(rng.normal(scale=np.radians(spec.line_direction_noise_deg), size=(n, 3)))
+        dirs.append(tilt @ axes[a])
         labels += [a] * n
     if spec.n_free_lines:
         d = rng.normal(size=(spec.n_free_lines, 3))
@@ -202,15 +209,23 @@ def align_sim3(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.
     return s, R_, mu_d - s * R_ @ mu_s
 
 
-def errors(est: Map, truth: Map, align: bool = True) -> dict[str, float]:
+def errors(est: Map, truth: Map, align: bool | str = True) -> dict[str, float]:
     """ATE RMSE of camera centres, point RMSE, mean Pluecker line error (paper's Error_l, |v| = 1),
-    mean line angle (deg), after a similarity alignment when `align`. The alignment uses camera centres
-    and points together: a near-straight camera path alone leaves the rotation about it undetermined."""
+    mean line angle (deg). `align`: True for a similarity alignment on camera centres and points together
+    (a near-straight camera path alone leaves the rotation about it undetermined); "scale" for a scale
+    about the first camera only (when the gauge holds the first pose at the truth); False for none."""
     c_e = est.keyframes.T_wc[:, :3, 3]
     c_t = truth.keyframes.T_wc[:, :3, 3]
-    src = np.concatenate([c_e, est.points.xyz])
-    dst = np.concatenate([c_t, truth.points.xyz])
-    s, R_, t = align_sim3(src, dst) if align else (1.0, np.eye(3), np.zeros(3))
+    if align == "scale":
+        a, b = c_e - c_e[0], c_t - c_t[0]
+        s = float(np.sum(a * b) / max(np.sum(a * a), 1e-300))
+        R_, t = np.eye(3), c_t[0] - s * c_e[0]
+    elif align:
+        src = np.concatenate([c_e, est.points.xyz])
+        dst = np.concatenate([c_t, truth.points.xyz])
+        s, R_, t = align_sim3(src, dst)
+    else:
+        s, R_, t = 1.0, np.eye(3), np.zeros(3)
 
     def tf(x: np.ndarray) -> np.ndarray:
         return s * x @ R_.T + t

@@ -1,0 +1,461 @@
+"""The paper's line-representation experiment: 2-parameter vs 4-parameter (orthonormal) vs 3-parameter
+(anchored) lines in the same BA, on synthetic scenes (fixed poses / small / large pose noise), on Xu et al.'s
+structural-line simulation and on Open-Structure sequences.
+
+Prints the tables (ours beside the papers' numbers) and writes benchmarks/results/line_representations.json.
+Times are CPU seconds of the LM iterations of this process (robust to other jobs on the machine) and
+wall seconds of the whole global_ba call.
+
+    .venv/bin/python benchmarks/line_representations.py [--quick]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import copy  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import platform  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from papl_mapper import geometry as geo  # noqa: E402
+from papl_mapper.backend import BAConfig, global_ba  # noqa: E402
+from papl_mapper.backend.synthetic import SceneSpec, errors, make_scene, perturb  # noqa: E402
+from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "benchmarks" / "results" / "line_representations.json"
+DATA = ROOT.parent / "shared" / "data"
+REPS = ("2-p", "4-p", "3-p", "3-p-est")
+"""3-p: the paper's anchoring ray through the observed midpoint; 3-p-est: through the current estimate."""
+PAPER = {  # Table "Results on Synthetic Data" of the PAPL paper
+    "fixed": {"time": (0.956, 1.097, 0.251), "error_l": (0.014, 0.006, 0.009), "trans": (0, 0, 0)},
+    "small": {
+        "time": (5.977, 7.359, 4.686),
+        "error_l": (0.596, 0.942, 0.314),
+        "trans": (0.107, 0.109, 0.072),
+    },
+    "large": {
+        "time": (6.934, 8.767, 5.100),
+        "error_l": (6.577, 5.144, 3.643),
+        "trans": (0.787, 0.775, 0.747),
+    },
+}
+XU_PAPER_CM = {"2-p": (0.06, 7.93, 14.99, 20.63), "4-p": (0.05, 5.34, 10.65, 16.17)}  # noise 0/1.5/3/4.5 px
+SCENARIOS = {"fixed": (0.0, 0.0), "small": (0.5, 0.03), "large": (2.0, 0.15)}  # pose noise: deg, units
+
+
+# ---- helpers --------------------------------------------------------------------------------
+
+
+def axes_from_lines(m: Map) -> None:
+    """Initial axes: the principal direction of the (perturbed) lines assigned to each axis."""
+    d = m.lines.endpoints_w[:, 1] - m.lines.endpoints_w[:, 0]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    best = np.argmax(m.lines.axis_weights, axis=1)
+    has = m.lines.axis_weights.max(axis=1) > 0
+    for a in range(len(m.axes)):
+        sel = d[has & (best == a)]
+        if len(sel):
+            w, V = np.linalg.eigh(sel.T @ sel)
+            v = V[:, -1]
+            m.axes.directions[a] = v if v @ m.axes.directions[a] >= 0 else -v
+
+
+def as_representation(m: Map, rep: str) -> tuple[Map, dict]:
+    """The same start in one representation: structural lines anchored (3-p), fixed-direction (2-p) or
+    orthonormal (4-p)."""
+    out = copy.deepcopy(m)
+    structural = out.lines.axis_weights.max(axis=1) > 0
+    if rep == "4-p":
+        out.lines.state[structural] = LineState.ORTHONORMAL
+        return out, {}
+    out.lines.state[structural] = LineState.ANCHORED
+    if rep == "3-p-est":
+        return out, {"anchor_bearing": "estimate"}
+    return out, ({"structural_lines": "fixed_direction"} if rep == "2-p" else {})
+
+
+def run_ba(m: Map, rep: str, **cfg) -> tuple[Map, dict]:
+    mm, extra = as_representation(m, rep)
+    res = global_ba(mm, BAConfig(max_iterations=50, relative_error_tol=1e-6, **extra, **cfg))
+    stats = {
+        "opt_cpu_s": float(np.sum(res.iteration_cpu_s)),
+        "wall_s": res.time_s,
+        "iterations": res.iterations,
+        "line_params": res.line_params,
+        "n_lines": {k: v for k, v in res.n_variables.items() if k.startswith("lines")},
+        "final_rms_px": res.final_rms_px,
+    }
+    return res.map, stats
+
+
+def endpoint_distance_cm(est: Map, truth: Map, rows: np.ndarray) -> float:
+    """Mean distance (x100) of the true endpoints to the estimated infinite lines (Xu et al.'s accuracy)."""
+    L = geo.plucker_from_endpoints(est.lines.endpoints_w[rows, 0], est.lines.endpoints_w[rows, 1])
+    P0, d = geo.line_point_dir(L)
+    dist = []
+    for k in (0, 1):
+        w = truth.lines.endpoints_w[rows, k] - P0
+        dist.append(np.linalg.norm(w - np.sum(w * d, 1, keepdims=True) * d, axis=1))
+    return float(100 * np.mean(dist))
+
+
+# ---- 1. synthetic scenes (the paper's toy experiment) ----------------------------------------
+
+
+def synthetic(seeds: list[int]) -> dict:
+    out: dict = {}
+    for name, (rot, trans) in SCENARIOS.items():
+        rows = {rep: [] for rep in REPS}
+        for seed in seeds:
+            spec = SceneSpec(
+                n_keyframes=30,
+                n_points=0,
+                lines_per_axis=(20, 20, 20),
+                step=0.2,
+                path_amplitude=3.0,
+                obs_noise_px=1.0,
+                line_direction_noise_deg=0.5,
+                seed=seed,
+            )
+            truth = make_scene(spec)
+            start = perturb(
+                truth, seed=100 + seed, rot_deg=rot, trans=trans, line_sigma=0.1, line_angle_deg=3.0
+            )
+            axes_from_lines(start)
+            for rep in REPS:
+                est, st = run_ba(start, rep, optimize_poses=name != "fixed")
+                e = errors(est, truth, align="scale" if name != "fixed" else False)
+                rows[rep].append(
+                    {
+                        **st,
+                        "error_l": e["line_error"],
+                        "trans": e["ate_rmse"],
+                        "line_angle_deg": e["line_angle_deg"],
+                    }
+                )
+        out[name] = {
+            rep: {
+                "time_cpu_s": float(np.mean([r["opt_cpu_s"] for r in rows[rep]])),
+                "time_wall_s": float(np.mean([r["wall_s"] for r in rows[rep]])),
+                "iterations": float(np.mean([r["iterations"] for r in rows[rep]])),
+                "error_l": float(np.mean([r["error_l"] for r in rows[rep]])),
+                "trans": float(np.mean([r["trans"] for r in rows[rep]])),
+                "line_angle_deg": float(np.mean([r["line_angle_deg"] for r in rows[rep]])),
+                "line_params": rows[rep][0]["line_params"]["anchored"]
+                + rows[rep][0]["line_params"]["orthonormal"],
+                "n_lines": rows[rep][0]["n_lines"],
+            }
+            for rep in REPS
+        }
+    return out
+
+
+# ---- 2. Xu et al.'s structural-line simulation ---------------------------------------------------
+
+
+def xu_line_sim(noises: tuple[float, ...], frame_step: int) -> dict | None:
+    root = DATA / "xu_line_sim"
+    if not root.is_dir():
+        return None
+    poses = np.loadtxt(root / "cam_pose_tum.txt")
+    frames = np.arange(0, len(poses), frame_step)
+    T = np.zeros((len(frames), 4, 4))
+    T[:, :3, :3] = Rotation.from_quat(poses[frames, 4:8]).as_matrix()
+    T[:, :3, 3] = poses[frames, 1:4]
+    T[:, 3, 3] = 1
+    house = np.loadtxt(root / "house_model" / "house.txt").reshape(-1, 2, 3)
+    f, c = 460.0, 255.0
+    K = np.array([[f, 0, c], [0, f, c], [0, 0, 1.0]])
+    obs_ids, obs_xy = [], []
+    for k, fr in enumerate(frames):
+        a = np.loadtxt(root / "keyframe" / f"all_lines_{fr}.txt", ndmin=2)
+        obs_ids.append(np.stack([a[:, 4].astype(np.int64), np.full(len(a), k)], 1))
+        obs_xy.append(a[:, :4] * f + c)
+    obs_ids, obs_xy = np.concatenate(obs_ids), np.concatenate(obs_xy)
+    M = len(house)
+    cam = Camera(640, 640, f, f, c, c)
+    kf = Keyframes(np.arange(len(frames)), frames.astype(np.int64), poses[frames, 0], T)
+    truth_lines = Lines(
+        np.arange(M),
+        house,
+        np.ones((M, 1)),
+        np.full(M, LineState.ANCHORED, np.int8),
+        np.full(M, -1),
+        np.full(M, 0.2),
+        obs_ids,
+        obs_xy,
+    )
+    truth = Map(cam, kf, Points.empty(), truth_lines, Axes(np.array([[0, 0, 1.0]]), 0))
+    out = {}
+    rng = np.random.default_rng(0)
+    for sigma in noises:
+        noisy = obs_xy + rng.normal(scale=sigma, size=obs_xy.shape)
+        L, ok = geo.triangulate_lines(obs_ids[:, 0], T[obs_ids[:, 1]], K, noisy, M)
+        ends, ok2 = geo.clip_to_observations(L, obs_ids[:, 0], T[obs_ids[:, 1]], K, noisy, M)
+        start = copy.deepcopy(truth)
+        start.lines.obs_xy = noisy
+        start.lines.endpoints_w = np.where((ok & ok2)[:, None, None], ends, house)
+        axes_from_lines(start)
+        rows = np.flatnonzero(ok & ok2)
+        res = {"lines_triangulated": int(len(rows)), "init_cm": endpoint_distance_cm(start, truth, rows)}
+        for rep in REPS:
+            est, st = run_ba(start, rep, optimize_poses=False)
+            res[rep] = {
+                "accuracy_cm": endpoint_distance_cm(est, truth, rows),
+                "time_cpu_s": st["opt_cpu_s"],
+                "time_wall_s": st["wall_s"],
+                "iterations": st["iterations"],
+                "line_params": st["line_params"]["anchored"] + st["line_params"]["orthonormal"],
+            }
+        out[str(sigma)] = res
+    return out
+
+
+# ---- 3. Open-Structure ---------------------------------------------------------------------------
+
+OS_INTRINSICS = {
+    "livingroom2": (481.2, -480.0, 319.5, 239.5),
+    "structure_texture_far": (535.4, 539.2, 320.1, 247.6),
+}
+
+
+def _load_open_structure(seq: Path, frame_step: int) -> Map:
+    def find(name: str) -> Path:
+        return next(seq.rglob(name))
+
+    cp = np.loadtxt(find("camera_poses.txt"))
+    pts = np.loadtxt(find("point_landmarks.txt"), ndmin=2)
+    sl = np.loadtxt(find("structline_landmarks.txt"), ndmin=2)
+    p_obs, l_obs, groups = [], [], []
+    for line in find("association.txt").read_text().splitlines():
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0].startswith("MappointFrameAsso"):
+            p_obs.append([float(x) for x in parts[1:5]])
+        elif parts[0].startswith("MaplineFrameAsso"):
+            v = [float(x) for x in parts[1:9]]
+            l_obs.append([v[0], v[1], v[2], v[3], v[5], v[6]])
+        elif parts[0].startswith("ParalineMaplineAsso"):
+            groups.append([int(x) for x in parts[3:]])
+    p_obs, l_obs = np.array(p_obs), np.array(l_obs)
+    frames = cp[::frame_step, 0].astype(np.int64)
+    T = np.zeros((len(frames), 4, 4))
+    T[:, :3, :3] = Rotation.from_quat(cp[::frame_step, 4:8]).as_matrix()
+    T[:, :3, 3] = cp[::frame_step, 1:4]
+    T[:, 3, 3] = 1
+    kf_of = {int(fr): k for k, fr in enumerate(frames)}
+    pk = np.array([kf_of.get(int(x), -1) for x in p_obs[:, 1]])
+    lk = np.array([kf_of.get(int(x), -1) for x in l_obs[:, 1]])
+    p_obs, pk = p_obs[pk >= 0], pk[pk >= 0]
+    l_obs, lk = l_obs[lk >= 0], lk[lk >= 0]
+    pts = pts[np.argsort(pts[:, 0])]
+    sl = sl[np.argsort(sl[:, 0])]
+    pid = pts[:, 0].astype(np.int64)
+    lid = sl[:, 0].astype(np.int64)
+    known_p = np.isin(p_obs[:, 0].astype(np.int64), pid)
+    known_l = np.isin(l_obs[:, 0].astype(np.int64), lid)
+    p_obs, pk, l_obs, lk = p_obs[known_p], pk[known_p], l_obs[known_l], lk[known_l]
+    if seq.name in OS_INTRINSICS:
+        fx, fy, cx, cy = OS_INTRINSICS[seq.name]
+    else:  # corridor1: intrinsics not given; fit them to the stored projections (exact data)
+        rows = np.searchsorted(pid, p_obs[:, 0].astype(np.int64))
+        Xc = geo.transform(geo.invert(T[pk]), pts[rows, 1:4])
+        x, y = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2]
+        fx, cx = np.linalg.lstsq(np.stack([x, np.ones_like(x)], 1), p_obs[:, 2], rcond=None)[0]
+        fy, cy = np.linalg.lstsq(np.stack([y, np.ones_like(y)], 1), p_obs[:, 3], rcond=None)[0]
+    cam = Camera(640, 480, float(fx), float(fy), float(cx), float(cy))
+    kf = Keyframes(np.arange(len(frames)), frames, frames / 30.0, T)
+
+    # keep landmarks seen from >= 2 kept keyframes
+    def seen_twice(ids: np.ndarray, obs_id: np.ndarray, obs_kf: np.ndarray) -> np.ndarray:
+        pairs = np.unique(np.stack([obs_id.astype(np.int64), obs_kf], 1), axis=0)
+        cnt = np.bincount(np.searchsorted(ids, pairs[:, 0]), minlength=len(ids))
+        return cnt >= 2
+
+    pkeep = seen_twice(pid, p_obs[:, 0], pk)
+    lkeep = seen_twice(lid, l_obs[:, 0], lk)
+    ps = np.isin(p_obs[:, 0].astype(np.int64), pid[pkeep])
+    ls = np.isin(l_obs[:, 0].astype(np.int64), lid[lkeep])
+    points = Points(
+        pid[pkeep],
+        pts[pkeep, 1:4],
+        np.full((pkeep.sum(), 3), 128, np.uint8),
+        np.stack([p_obs[ps, 0].astype(np.int64), pk[ps]], 1),
+        p_obs[ps, 2:4],
+    )
+    A = len(groups)
+    w = np.zeros((len(lid), A))
+    for g, members in enumerate(groups):
+        w[np.isin(lid, members), g] = 1.0
+    w = w[lkeep]
+    ends = sl[lkeep, 1:7].reshape(-1, 2, 3)
+    axes = np.zeros((A, 3))
+    d = ends[:, 1] - ends[:, 0]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for g in range(A):
+        sel = d[w[:, g] > 0]
+        if len(sel):
+            axes[g] = np.linalg.eigh(sel.T @ sel)[1][:, -1]
+        else:
+            axes[g] = [0, 0, 1.0]
+    state = np.where(w.max(1) > 0, LineState.ANCHORED, LineState.ORTHONORMAL).astype(np.int8)
+    lines = Lines(
+        lid[lkeep],
+        ends,
+        w,
+        state,
+        np.full(lkeep.sum(), -1),
+        np.where(state == 2, 0.2, np.nan),
+        np.stack([l_obs[ls, 0].astype(np.int64), lk[ls]], 1),
+        l_obs[ls, 2:6],
+    )
+    return Map(cam, kf, points, lines, Axes(axes, -1))
+
+
+def open_structure(frame_step: int, obs_noise: float) -> dict | None:
+    root = DATA / "open_structure"
+    if not root.is_dir():
+        return None
+    out = {}
+    for seq in sorted(p for p in root.iterdir() if p.is_dir()):
+        truth = _load_open_structure(seq, frame_step)
+        rng = np.random.default_rng(1)
+        start = perturb(
+            truth, seed=2, rot_deg=1.0, trans=0.05, point_sigma=0.05, line_sigma=0.05, line_angle_deg=2.0
+        )
+        noise = 0.0 if seq.name == "corridor1" else obs_noise  # corridor1 already carries ~1 px noise
+        start.points.obs_uv = start.points.obs_uv + rng.normal(scale=noise, size=start.points.obs_uv.shape)
+        start.lines.obs_xy = start.lines.obs_xy + rng.normal(scale=noise, size=start.lines.obs_xy.shape)
+        axes_from_lines(start)
+        res = {
+            "keyframes": len(truth.keyframes),
+            "points": len(truth.points),
+            "lines": len(truth.lines),
+            "structural_lines": int((truth.lines.axis_weights.max(1) > 0).sum()),
+            "axes": len(truth.axes),
+            "start": errors(start, truth),
+        }
+        for rep in ("4-p", "3-p", "3-p-est"):
+            est, st = run_ba(start, rep)
+            res[rep] = {
+                **errors(est, truth),
+                "time_cpu_s": st["opt_cpu_s"],
+                "iterations": st["iterations"],
+                "final_rms_px": st["final_rms_px"],
+            }
+        out[seq.name] = res
+    return out
+
+
+# ---- main ----------------------------------------------------------------------------------------
+
+
+def _machine() -> dict:
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    return {
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "load_average_1m_at_end": os.getloadavg()[0],
+        "git_commit": commit,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="one seed, fewer frames (smoke test)")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    seeds = [0] if args.quick else [0, 1, 2, 3, 4]
+    syn = synthetic(seeds)
+    print(
+        f"\nSynthetic scenes ({len(seeds)} seeds, 30 keyframes, 60 lines on 3 axes; mean; paper in brackets)"
+    )
+    print(f"{'scenario':<8} {'metric':<16}" + "".join(f"{r:>22}" for r in REPS))
+    for name in SCENARIOS:
+        for metric, key in (
+            ("time CPU s", "time_cpu_s"),
+            ("Error_l", "error_l"),
+            ("Trans. (ATE)", "trans"),
+            ("iterations", "iterations"),
+            ("line params", "line_params"),
+        ):
+            paper = PAPER[name].get(
+                {"time_cpu_s": "time", "error_l": "error_l", "trans": "trans"}.get(key, "")
+            )
+            cells = []
+            for i, rep in enumerate(REPS):
+                v = syn[name][rep][key]
+                cells.append(f"{v:.4g}" + (f" [{paper[i]}]" if paper and i < 3 else ""))
+            print(f"{name:<8} {metric:<16}" + "".join(f"{c:>22}" for c in cells))
+    ratios = {
+        "time_3p_over_4p_fixed": syn["fixed"]["3-p"]["time_cpu_s"] / syn["fixed"]["4-p"]["time_cpu_s"],
+        "time_3p_over_4p_small": syn["small"]["3-p"]["time_cpu_s"] / syn["small"]["4-p"]["time_cpu_s"],
+        "time_3p_over_4p_large": syn["large"]["3-p"]["time_cpu_s"] / syn["large"]["4-p"]["time_cpu_s"],
+        "error_l_3p_over_4p_small": syn["small"]["3-p"]["error_l"] / syn["small"]["4-p"]["error_l"],
+        "error_l_3p_over_4p_large": syn["large"]["3-p"]["error_l"] / syn["large"]["4-p"]["error_l"],
+    }
+    print("\nratios (goals: time fixed <= 0.25, with pose noise <= 0.65; Error_l with pose noise <= 0.35):")
+    for k, v in ratios.items():
+        print(f"  {k:<28} {v:.3f}")
+    xu = xu_line_sim((0.0, 1.5, 3.0, 4.5), 10 if args.quick else 5)
+    if xu:
+        print("\nXu et al. simulation (80 vertical lines, fixed poses): accuracy cm [their 2-p / 4-p]")
+        for sigma, r in xu.items():
+            i = ("0.0", "1.5", "3.0", "4.5").index(sigma)
+            print(
+                f"  noise {sigma:>4} px: "
+                + "  ".join(
+                    f"{rep} {r[rep]['accuracy_cm']:.2f} cm ({r[rep]['time_cpu_s']:.2f} s)" for rep in REPS
+                )
+                + f"  [{XU_PAPER_CM['2-p'][i]} / {XU_PAPER_CM['4-p'][i]}]  init {r['init_cm']:.2f}"
+            )
+    os_res = open_structure(8 if args.quick else 4, 1.0)
+    if os_res:
+        print(
+            "\nOpen-Structure (noise 1 px, poses 1 deg / 0.05 m, landmarks perturbed): 4-p vs 3-p"
+        )
+        for seq, r in os_res.items():
+            for rep in ("4-p", "3-p", "3-p-est"):
+                x = r[rep]
+                print(
+                    f"  {seq:<22} {rep}: ATE {x['ate_rmse']:.4f} m  Error_l {x['line_error']:.4f}  "
+                    f"angle {x['line_angle_deg']:.3f} deg  ({x['time_cpu_s']:.2f} s CPU)"
+                )
+    result = {
+        "benchmark": "line_representations",
+        "synthetic": syn,
+        "ratios": ratios,
+        "paper_synthetic": PAPER,
+        "xu_line_sim": xu,
+        "xu_paper_cm": XU_PAPER_CM,
+        "open_structure": os_res,
+        "machine": _machine(),
+        "note": "times: CPU s of LM iterations; 2 cores shared with other jobs",
+    }
+    if not args.quick:
+        OUT.parent.mkdir(parents=True, exist_ok=True)
+        OUT.write_text(json.dumps(result, indent=1))
+        print("wrote", OUT)
+
+
+if __name__ == "__main__":
+    main()
