@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -57,7 +57,6 @@ class Scene:
     background_bgr: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
     texels_per_m: float = 256.0  # texture resolution (the renderer tiles quads by TEXTURE_PERIOD)
-    extra: dict = field(default_factory=dict)
 
     @property
     def normals(self) -> np.ndarray:
