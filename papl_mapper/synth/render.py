@@ -87,12 +87,24 @@ class Renderer:
         self.emissive = np.array([m.emissive for m in scene.materials])
         qc = scene.quad_corners
         self.normals = scene.normals
-        self.tile_corners, self.tile_parent, self.tile_range = _tiles(scene, self.ppm)
-        self.tile_ab = _tex_ab(self.tile_corners, scene, self.tile_parent)
         self.quad_size = np.stack(
             [np.linalg.norm(qc[:, 1] - qc[:, 0], axis=1), np.linalg.norm(qc[:, 3] - qc[:, 0], axis=1)], axis=1
         )
         self.tex_ab = _tex_ab(qc, scene, np.arange(len(qc)))  # (Q, 4, 2) metres in the texture frame
+        self.tile_corners, self.tile_parent, self.tile_range = _tiles(scene, self.ppm)
+        self.tile_centres = self.tile_corners.mean(1)
+        self.tile_ab_min = _tex_ab(self.tile_corners, scene, self.tile_parent).min(1)  # (T, 2) metres
+        n_levels = np.array([len(self.pyramids[m]) for m in scene.quad_material])
+        self.tile_max_level = n_levels[self.tile_parent] - 1
+        # coverage: (a, b) metres -> quad coordinates that round to 0 exactly inside the quad
+        a0, b0 = self.tex_ab[:, 0, 0], self.tex_ab[:, 0, 1]
+        lu, lv = self.quad_size[:, 0], self.quad_size[:, 1]
+        self.coverage_S = np.zeros((len(qc), 3, 3))
+        self.coverage_S[:, 0, 0] = 1 / lu
+        self.coverage_S[:, 0, 2] = -a0 / lu - 0.5
+        self.coverage_S[:, 1, 1] = 1 / lv
+        self.coverage_S[:, 1, 2] = -b0 / lv - 0.5
+        self.coverage_S[:, 2, 2] = 1
         self.background = np.clip(np.asarray(scene.background_bgr) * 255 / 1.5, 0, 255).astype(np.uint8)
 
     def render(self, T_wc: np.ndarray, with_depth: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
@@ -135,20 +147,36 @@ class Renderer:
         n_c = self.normals @ R.T  # (Q, 3)
         d_c = (n_c * Pc[:, 0]).sum(1)  # plane n_c . X = d_c
         facing = np.where(d_c < 0, 1.0, -1.0)  # flip normals to face the camera
-        n_world_facing = self.normals * facing[:, None]
-        shade = np.where(self.emissive[sc.quad_material], 1.0, 0.6 + 0.4 * (n_world_facing @ LIGHT_DIR))
+        shade = np.where(
+            self.emissive[sc.quad_material], 1.0, 0.6 + 0.4 * ((self.normals @ LIGHT_DIR) * facing)
+        )
+        todo = np.flatnonzero(visible & (np.abs(d_c) > 1e-9))
+        if not len(todo):
+            return img, zbuf
+        # per frame, for all quads at once: pixel -> (a, b) metres on each quad's plane
+        frame = np.stack([sc.tex_u @ R.T, sc.tex_v @ R.T, sc.tex_origin @ R.T + t], axis=-1)  # (Q, 3, 3)
+        with np.errstate(all="ignore"):
+            H_inv = np.linalg.inv(K @ frame)  # (Q, 3, 3), singular only for planes through the centre
+        coverage = self.coverage_S @ H_inv
+        tile_cam = self.tile_corners @ R.T + t  # (T, 4, 3)
+        tex_maps, levels = self._tile_maps(tile_cam, n_c, H_inv)
+        inv_plane = (n_c @ self.K_inv) / d_c[:, None]  # (Q, 3): inverse depth = a u + b v + c
         xs_all = np.arange(W, dtype=np.float32)
         ys_all = np.arange(H, dtype=np.float32)
-        todo = np.flatnonzero(visible & (np.abs(d_c) > 1e-9))
+        z_all_front = (z >= NEAR).all(1)
+        uv_all = (Pc @ K.T)[..., :2] / np.where(z_all_front[:, None], z, 1.0)[..., None]
         # near planes first, so that later ones mostly fail the depth test and skip their warp
         todo = todo[np.argsort(np.abs(d_c[todo]), kind="stable")]
         for q in todo:
-            poly = _clip_near(Pc[q], self.tex_ab[q])
-            if poly is None:
-                continue
-            pc, ab = poly
-            uv = pc @ K.T
-            uv = uv[:, :2] / uv[:, 2:3]
+            clipped = not z_all_front[q]
+            if clipped:
+                pc = _clip_near(Pc[q])
+                if pc is None:
+                    continue
+                uv = pc @ K.T
+                uv = uv[:, :2] / uv[:, 2:3]
+            else:
+                uv = uv_all[q]
             x0 = max(int(math.floor(uv[:, 0].min())) - 1, 0)
             x1 = min(int(math.ceil(uv[:, 0].max())) + 2, W)
             y0 = max(int(math.floor(uv[:, 1].min())) - 1, 0)
@@ -156,18 +184,13 @@ class Renderer:
             if x1 <= x0 or y1 <= y0:
                 continue
             w, h = x1 - x0, y1 - y0
-            mask = self._coverage(q, R, t, x0, y0, w, h)
-            if len(pc) != 4 or (pc[:, 2] < Pc[q, :, 2] - 1e-12).any():  # near-clipped: bound by the polygon
-                clip = np.zeros((h, w), np.uint8)
-                pts = [np.round((uv - [x0, y0]) * 16).astype(np.int32)]
-                cv2.fillPoly(clip, pts, 255, lineType=cv2.LINE_8, shift=4)
-                cv2.polylines(clip, pts, True, 255, thickness=3, lineType=cv2.LINE_8, shift=4)
-                mask = cv2.bitwise_and(mask, clip)
-            # inverse depth of pixel (u, v): (n_c . K^-1 [u v 1]) / d_c, affine in u and v
-            a, b, c = (self.K_inv.T @ n_c[q]) / d_c[q]
-            inv_x = np.float32(a) * xs_all[x0:x1]
-            inv_y = np.float32(b) * ys_all[y0:y1] + np.float32(c)
-            invz = inv_x[None] + inv_y[:, None]
+            mask = _lookup(_ONE, _shifted(coverage[q], x0, y0), w, h, cv2.INTER_NEAREST, cv2.BORDER_CONSTANT)
+            if clipped:  # the homography also maps points behind the camera: bound by the polygon
+                mask = cv2.bitwise_and(mask, _polygon_mask(uv, x0, y0, w, h))
+            a, b, c = inv_plane[q]
+            invz = (np.float32(a) * xs_all[x0:x1])[None] + (np.float32(b) * ys_all[y0:y1] + np.float32(c))[
+                :, None
+            ]
             zb = zbuf[y0:y1, x0:x1]
             m = cv2.bitwise_and(cv2.compare(invz, zb, cv2.CMP_GT), mask)
             bx, by, bw, bh = cv2.boundingRect(m)  # warp only where the quad wins the depth test
@@ -177,54 +200,55 @@ class Renderer:
             invz = invz[by : by + bh, bx : bx + bw]
             zb = zb[by : by + bh, bx : bx + bw]
             x0, y0, w, h = x0 + bx, y0 + by, bw, bh
-            warped = self._texture(q, R, t, pc, ab, x0, y0, w, h)
+            warped = self._texture(q, tile_cam, tex_maps, levels, x0, y0, w, h)
             if shade[q] != 1.0:
                 warped = cv2.convertScaleAbs(warped, alpha=float(shade[q]))
             cv2.copyTo(warped, m, img[y0 : y0 + h, x0 : x0 + w])  # writes through the views
             cv2.copyTo(invz, m, zb)
         return img, zbuf
 
-    def _coverage(self, q, R, t, x0, y0, w, h) -> np.ndarray:
-        """(h, w) uint8 mask of the pixels whose centre sees quad q: exact, from the inverse homography.
+    def _tile_maps(self, tile_cam, n_c, H_inv) -> tuple[np.ndarray, np.ndarray]:
+        """Per tile: matrix from image pixels to texels of its mip level (T, 3, 3), and the level (T,).
 
-        A 1 x 1 source image looked up with nearest-neighbour rounding is 255 exactly where the
-        quad coordinate (a - a0) / |u| - 1/2 rounds to 0, that is for a in [a0, a0 + |u|) (same for b).
+        The level follows the texel-to-pixel ratio at the tile: its depth range and obliquity.
         """
-        sc = self.scene
-        o = R @ sc.tex_origin[q] + t
-        H_ab = self.K @ np.column_stack([R @ sc.tex_u[q], R @ sc.tex_v[q], o])  # metres (a, b) -> pixels
-        a0, b0 = self.tex_ab[q, 0]
-        lu, lv = self.quad_size[q]
-        S = np.array([[1 / lu, 0, -a0 / lu - 0.5], [0, 1 / lv, -b0 / lv - 0.5], [0, 0, 1]])
-        shift = np.array([[1.0, 0, x0], [0, 1, y0], [0, 0, 1]])
-        return cv2.warpPerspective(
-            _ONE,
-            S @ np.linalg.inv(H_ab) @ shift,
-            (w, h),
-            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=0,
+        q = self.tile_parent
+        tz = np.maximum(tile_cam[..., 2], NEAR)  # (T, 4) depths of the tile corners
+        z_ref = np.sqrt(tz.min(1) * tz.max(1))
+        centre = tile_cam.mean(1)
+        cos = np.abs((n_c[q] * centre).sum(1)) / np.linalg.norm(centre, axis=1)
+        rho = self.ppm * z_ref / (self.K[0, 0] * np.maximum(cos, 0.2))  # texels per rendered pixel
+        level = np.clip(np.floor(np.log2(np.maximum(rho, 1e-6)) + 0.5), 0, self.tile_max_level).astype(
+            np.int64
         )
+        p2 = 2.0**level
+        scale = self.ppm / p2
+        half = (p2 - 1) / (2 * p2)
+        period = TEXTURE_PERIOD / p2
+        off = np.floor(self.tile_ab_min * (scale / period)[:, None]) * period[:, None]  # stay in the 2x2 copy
+        A = np.zeros((len(q), 3, 3))
+        A[:, 0, 0] = A[:, 1, 1] = scale
+        A[:, 0, 2] = -half - off[:, 0]
+        A[:, 1, 2] = -half - off[:, 1]
+        A[:, 2, 2] = 1
+        return A @ H_inv[q], level
 
-    def _texture(self, q, R, t, pc, ab, x0, y0, w, h) -> np.ndarray:
+    def _texture(self, q, tile_cam, tex_maps, levels, x0, y0, w, h) -> np.ndarray:
         """(h, w, 3) uint8 texture of quad q over the pixel rect at (x0, y0), assembled from its tiles.
 
         Tiles are drawn with masks grown by a pixel: the texture is continuous across them, and the
         quad's own mask (not the tiles') decides coverage, so tile seams never open gaps.
         """
         first, count = self.tile_range[q]
-        mat = self.scene.quad_material[q]
+        pyramid = self.pyramids[self.scene.quad_material[q]]
         if count == 1:
-            M, level = self._texture_map(first, R, t, pc, ab, x0, y0)
-            return _warp(self.pyramids[mat][level], M, w, h)
+            return _lookup(pyramid[levels[first]], _shifted(tex_maps[first], x0, y0), w, h)
         out = np.zeros((h, w, 3), np.uint8)
-        Pc = self.tile_corners[first : first + count] @ R.T + t
-        for k in range(count):
-            poly = _clip_near(Pc[k], self.tile_ab[first + k])
-            if poly is None:
+        for k in range(first, first + count):
+            pc = _clip_near(tile_cam[k])
+            if pc is None:
                 continue
-            tpc, tab = poly
-            uv = tpc @ self.K.T
+            uv = pc @ self.K.T
             uv = uv[:, :2] / uv[:, 2:3]
             tx0 = max(int(math.floor(uv[:, 0].min())) - 2, x0)
             tx1 = min(int(math.ceil(uv[:, 0].max())) + 3, x0 + w)
@@ -232,35 +256,11 @@ class Renderer:
             ty1 = min(int(math.ceil(uv[:, 1].max())) + 3, y0 + h)
             if tx1 <= tx0 or ty1 <= ty0:
                 continue
-            mask = np.zeros((ty1 - ty0, tx1 - tx0), np.uint8)
-            pts = [np.round((uv - [tx0, ty0]) * 16).astype(np.int32)]
-            cv2.fillPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
-            cv2.polylines(mask, pts, True, 255, thickness=3, lineType=cv2.LINE_8, shift=4)
-            M, level = self._texture_map(first + k, R, t, tpc, tab, tx0, ty0)
-            tile = _warp(self.pyramids[mat][level], M, tx1 - tx0, ty1 - ty0)
+            tw, th = tx1 - tx0, ty1 - ty0
+            mask = _polygon_mask(uv, tx0, ty0, tw, th)
+            tile = _lookup(pyramid[levels[k]], _shifted(tex_maps[k], tx0, ty0), tw, th)
             cv2.copyTo(tile, mask, out[ty0 - y0 : ty1 - y0, tx0 - x0 : tx1 - x0])
         return out
-
-    def _texture_map(self, k, R, t, pc, ab, x0, y0) -> tuple[np.ndarray, int]:
-        """Matrix from rect pixels to texels of tile k's mip level, and that level."""
-        sc = self.scene
-        q = self.tile_parent[k]
-        o = R @ sc.tex_origin[q] + t
-        H_ab = self.K @ np.column_stack([R @ sc.tex_u[q], R @ sc.tex_v[q], o])  # metres (a, b) -> pixels
-        zs = pc[:, 2]
-        z_ref = math.sqrt(zs.min() * zs.max())
-        centre = pc.mean(0)
-        cos = abs(float((R @ self.normals[q]) @ (centre / np.linalg.norm(centre))))
-        rho = self.ppm * z_ref / (self.K[0, 0] * max(cos, 0.2))  # texels per rendered pixel
-        n_levels = len(self.pyramids[sc.quad_material[q]])
-        level = int(np.clip(math.floor(math.log2(max(rho, 1e-6)) + 0.5), 0, n_levels - 1))
-        scale = self.ppm / 2**level
-        half = (2**level - 1) / 2 ** (level + 1)
-        period = TEXTURE_PERIOD / 2**level
-        off = np.floor(ab.min(0) * scale / period) * period  # keep lookups inside the 2 x 2 tiled copy
-        A = np.array([[scale, 0, -half - off[0]], [0, scale, -half - off[1]], [0, 0, 1]])
-        shift = np.array([[1.0, 0, x0], [0, 1, y0], [0, 0, 1]])
-        return A @ np.linalg.inv(H_ab) @ shift, level
 
 
 def _tex_ab(corners: np.ndarray, scene: Scene, quad: np.ndarray) -> np.ndarray:
@@ -271,10 +271,25 @@ def _tex_ab(corners: np.ndarray, scene: Scene, quad: np.ndarray) -> np.ndarray:
     )
 
 
-def _warp(tex: np.ndarray, M: np.ndarray, w: int, h: int) -> np.ndarray:
-    return cv2.warpPerspective(
-        tex, M, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_WRAP
-    )
+def _lookup(tex, M, w, h, interpolation=cv2.INTER_LINEAR, border=cv2.BORDER_WRAP) -> np.ndarray:
+    """(h, w) image whose pixel p is tex at M @ p (M: rect pixels -> source pixels)."""
+    return cv2.warpPerspective(tex, M, (w, h), flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=border)
+
+
+def _shifted(M: np.ndarray, x0: int, y0: int) -> np.ndarray:
+    """M @ translation(x0, y0): the same map for a rect whose first pixel is (x0, y0)."""
+    out = M.copy()
+    out[:, 2] += M[:, 0] * x0 + M[:, 1] * y0
+    return out
+
+
+def _polygon_mask(uv: np.ndarray, x0: int, y0: int, w: int, h: int) -> np.ndarray:
+    """(h, w) mask of a convex polygon (K, 2) in pixels, grown by about a pixel all round."""
+    mask = np.zeros((h, w), np.uint8)
+    pts = [np.round((uv - [x0, y0]) * 16).astype(np.int32)]
+    cv2.fillPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
+    cv2.polylines(mask, pts, True, 255, thickness=3, lineType=cv2.LINE_8, shift=4)
+    return mask
 
 
 def _tiles(scene: Scene, texels_per_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -295,23 +310,17 @@ def _tiles(scene: Scene, texels_per_m: float) -> tuple[np.ndarray, np.ndarray, n
     return np.array(corners), np.array(parent, np.int64), np.array(ranges, np.int64)
 
 
-def _clip_near(pc: np.ndarray, ab: np.ndarray):
-    """Sutherland-Hodgman clip of a quad (camera coords, with texture coords) to z >= NEAR."""
+def _clip_near(pc: np.ndarray) -> np.ndarray | None:
+    """Sutherland-Hodgman clip of a polygon (K, 3) in camera coordinates to z >= NEAR."""
     z = pc[:, 2]
     if (z >= NEAR).all():
-        return pc, ab
-    out_c, out_ab = [], []
+        return pc
+    out = []
     n = len(pc)
     for i in range(n):
         j = (i + 1) % n
-        zi, zj = z[i], z[j]
-        if zi >= NEAR:
-            out_c.append(pc[i])
-            out_ab.append(ab[i])
-        if (zi >= NEAR) != (zj >= NEAR):
-            s = (NEAR - zi) / (zj - zi)
-            out_c.append(pc[i] + s * (pc[j] - pc[i]))
-            out_ab.append(ab[i] + s * (ab[j] - ab[i]))
-    if len(out_c) < 3:
-        return None
-    return np.array(out_c), np.array(out_ab)
+        if z[i] >= NEAR:
+            out.append(pc[i])
+        if (z[i] >= NEAR) != (z[j] >= NEAR):
+            out.append(pc[i] + (NEAR - z[i]) / (z[j] - z[i]) * (pc[j] - pc[i]))
+    return np.array(out) if len(out) >= 3 else None
