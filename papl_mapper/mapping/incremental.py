@@ -30,11 +30,13 @@ class IncrementalConfig:
     """PnP tracking thresholds."""
     init_search_keyframes: int = 25
     """How many keyframes after the first one to try as the initialisation partner."""
-    min_parallax_deg: float = 1.0
+    min_parallax_deg: float = 2.0
     """Smallest ray angle for triangulating a new point."""
     max_reprojection_px: float = 3.0
     """Largest reprojection error of a newly triangulated point in the views that made it."""
-    keyframe_min_inliers: int = 80
+    mature_parallax_deg: float = 8.0
+    """Points triangulated with at least this ray angle are not re-triangulated from new views."""
+    keyframe_min_inliers: int = 60
     """A frame with fewer PnP inliers becomes a keyframe (the map needs new points)."""
     keyframe_min_known: float = 0.5
     """A frame whose inliers are fewer than this fraction of its point tracks becomes a keyframe."""
@@ -55,6 +57,8 @@ class Registration:
     frames: list[int] = field(default_factory=list)
     T_cw: dict[int, np.ndarray] = field(default_factory=dict)
     points_w: dict[int, np.ndarray] = field(default_factory=dict)
+    point_angle: dict[int, float] = field(default_factory=dict)
+    """Largest ray angle (deg) each point was triangulated with."""
     T_cw_frames: dict[int, np.ndarray] = field(default_factory=dict)
     """PnP poses of the registered frames that are not keyframes."""
     lost: list[int] = field(default_factory=list)
@@ -96,14 +100,18 @@ def triangulate_multiview(
 
 
 def _triangulate_new(tracks: Tracks, reg: Registration, frame: int, cfg: IncrementalConfig) -> int:
-    """Triangulate point tracks seen in `frame` and at least one earlier registered keyframe."""
+    """Triangulate the point tracks seen in `frame` from all their registered keyframes.
+
+    New tracks enter the map once their rays span `min_parallax_deg`; mapped ones are
+    re-triangulated when the new view widens their ray angle, so early low-parallax depths
+    mature instead of dragging the scale. Returns the number of new points.
+    """
     K = tracks.camera.K
     ids, _ = tracks.points_in(frame)
-    new = ids[~np.isin(ids, np.fromiter(reg.points_w, np.int64, len(reg.points_w)))]
-    if len(new) == 0:
+    if len(ids) == 0:
         return 0
     registered = np.array(reg.frames)
-    sel = np.isin(tracks.point_track, new) & np.isin(tracks.point_frame, registered)
+    sel = np.isin(tracks.point_track, ids) & np.isin(tracks.point_frame, registered)
     obs_track, obs_frame, obs_uv = tracks.point_track[sel], tracks.point_frame[sel], tracks.point_uv[sel]
     order = np.argsort(obs_track, kind="stable")
     obs_track, obs_frame, obs_uv = obs_track[order], obs_frame[order], obs_uv[order]
@@ -113,11 +121,21 @@ def _triangulate_new(tracks: Tracks, reg: Registration, frame: int, cfg: Increme
     for s, e in zip(starts, ends, strict=True):
         if e - s < 2:
             continue
+        tid = int(obs_track[s])
+        old_angle = reg.point_angle.get(tid)
+        if old_angle is not None and old_angle >= cfg.mature_parallax_deg:
+            continue
         T = np.stack([reg.T_cw[int(f)] for f in obs_frame[s:e]])
         X, err, angle = triangulate_multiview(T, obs_uv[s:e], K)
-        if np.isfinite(X).all() and angle >= cfg.min_parallax_deg and err.max() < cfg.max_reprojection_px:
-            reg.points_w[int(obs_track[s])] = X
+        ok = np.isfinite(X).all() and angle >= cfg.min_parallax_deg and err.max() < cfg.max_reprojection_px
+        if not ok:
+            continue
+        if old_angle is None:
             added += 1
+        elif angle < 1.2 * old_angle:
+            continue
+        reg.points_w[tid] = X
+        reg.point_angle[tid] = angle
     return added
 
 
