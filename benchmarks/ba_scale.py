@@ -115,6 +115,10 @@ def main() -> None:
         "cpu_s_per_iteration_mean": float(cpu.mean()),
         "cpu_s_per_iteration_median": float(np.median(cpu)),
         "linearize_s": res.linearize_s,
+        "lm_linearize_s_per_iteration": res.lm_linearize_s / max(res.iterations, 1),
+        "lm_solve_s_per_iteration": res.lm_solve_s / max(res.iterations, 1),
+        "lm_retract_error_s_per_iteration": res.lm_error_s / max(res.iterations, 1),
+        "lm_damped_solves": res.n_solves,
         "solve_s": res.solve_s,
         "setup_s": res.setup_s,
         "total_ba_s": res.time_s,
@@ -145,6 +149,11 @@ def main() -> None:
             f"{it.mean():.2f} / {np.median(it):.2f} / {it.max():.2f}",
         ),
         ("CPU s per LM iteration (mean / median)", f"{cpu.mean():.2f} / {np.median(cpu):.2f}"),
+        (
+            "per iteration: linearise / damped solves / retract+cost s",
+            f"{res.lm_linearize_s / res.iterations:.2f} / {res.lm_solve_s / res.iterations:.2f} / "
+            f"{res.lm_error_s / res.iterations:.2f} ({res.n_solves} solves)",
+        ),
         ("one linearisation s / one solve s", f"{res.linearize_s:.2f} / {res.solve_s:.2f}"),
         ("line factors, one linearisation: per track s", f"{track_s:.2f} ({n_track} factors)"),
         ("line factors, one linearisation: per observation s", f"{obs_s:.2f} ({n_obs} factors)"),
