@@ -129,7 +129,7 @@ def test_tracking_match_precision_and_persistence(walk):
 def test_lost_segments_are_reassociated_by_lbd(walk):
     """Detections missing for two frames come back under their old track ids at the next keyframe."""
     frames, gts = walk
-    cfg = LineConfig()
+    cfg = LineConfig(max_missed_frames=0)  # no coasting: the tracks end and LBD must re-find them
     det = SegmentDetector(cfg)
     lbd = LBD()
     gt_before: dict[int, int] = {}
@@ -160,3 +160,33 @@ def test_lost_segments_are_reassociated_by_lbd(walk):
     now = {t: int(gts[5][1][g]) for t, g in zip(lt.ids.tolist(), m.tolist(), strict=True) if g >= 0}
     checked = [now[old] == gt_before[old] for old in lt.aliases.values() if old in now and old in gt_before]
     assert len(checked) >= 10 and np.mean(checked) >= MIN_MATCH_PRECISION
+
+
+def test_missed_detections_coast_on_the_flow(walk):
+    """With coasting, segments missing for two frames keep their ids without any re-association."""
+    frames, gts = walk
+    cfg = LineConfig(max_missed_frames=2, reassociate=False)
+    det = SegmentDetector(cfg)
+    lt = LineTracker(cfg)
+    pt = PointTracker(PointConfig(), FlowConfig(), frames[0].shape[1], frames[0].shape[0])
+    prev = None
+    hidden = None
+    for k, img in enumerate(frames[:6]):
+        pt.step(img, prev)
+        segs = det.detect(img)
+        if k in (2, 3):
+            segs = segs[len(segs) // 2 :]
+        ids = lt.step(
+            segs, pt.flow_from if prev is not None else None, pt.flow_to if prev is not None else None
+        )
+        if k == 1:
+            gt_before = dict(zip(ids.tolist(), segment_match(segs, gts[k][0]).tolist(), strict=True))
+            gid_before = gts[k][1]
+        if k == 2:
+            hidden = set(gt_before) - set(ids.tolist())
+        prev = img
+    back = hidden & set(ids.tolist())
+    assert len(back) >= 10 and not lt.aliases
+    m = dict(zip(ids.tolist(), segment_match(segs, gts[5][0]).tolist(), strict=True))
+    same = [gts[5][1][m[t]] == gid_before[gt_before[t]] for t in back if m[t] >= 0 and gt_before[t] >= 0]
+    assert len(same) >= 10 and np.mean(same) >= MIN_MATCH_PRECISION

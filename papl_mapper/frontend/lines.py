@@ -57,6 +57,8 @@ class LineConfig:
     """Tracking gate: mean distance of the detected endpoints to the predicted line."""
     min_overlap: float = 0.3
     """Tracking gate: overlap along the line over the shorter segment's length."""
+    max_missed_frames: int = 4
+    """A segment track survives this many frames without a detection (carried by the point flow)."""
     flow_neighbours: int = 6
     """Tracked points used to predict a segment's motion."""
     lbd_max_hamming: int = 70
@@ -353,6 +355,10 @@ class LineTracker:
         self._lost_segs = np.zeros((0, 4))
         self._lost_desc = np.zeros((0, 32), np.uint8)
         self._lost_at = np.zeros(0, np.int64)
+        # tracks not detected in the last frame(s), carried by the flow for max_missed_frames
+        self._coast_ids = np.zeros(0, np.int64)
+        self._coast_segs = np.zeros((0, 4))
+        self._coast_miss = np.zeros(0, np.int64)
 
     def step(self, det: np.ndarray, flow_from: np.ndarray | None, flow_to: np.ndarray | None) -> np.ndarray:
         """Assign track ids to this frame's detections (S, 4); returns the ids (S,) int64.
@@ -363,13 +369,23 @@ class LineTracker:
         self.frame += 1
         det = np.asarray(det, np.float64).reshape(-1, 4)
         ids = np.full(len(det), -1, np.int64)
-        if flow_from is not None and len(self.ids):
-            pred = predict_segments(self.segs, flow_from, flow_to, self.config.flow_neighbours)
+        cand_ids = np.concatenate([self.ids, self._coast_ids])
+        if flow_from is not None and len(cand_ids):
+            cand_segs = np.vstack([self.segs, self._coast_segs])
+            cand_miss = np.concatenate([np.zeros(len(self.ids), np.int64), self._coast_miss])
+            pred = predict_segments(cand_segs, flow_from, flow_to, self.config.flow_neighbours)
             m = match_predicted(pred, det, self.config)
-            ids[m[:, 1]] = self.ids[m[:, 0]]
-            lost = np.setdiff1d(self.ids, ids[ids >= 0])
+            ids[m[:, 1]] = cand_ids[m[:, 0]]
+            missed = np.ones(len(cand_ids), bool)
+            missed[m[:, 0]] = False
+            miss = cand_miss + 1
+            coast = missed & (miss <= self.config.max_missed_frames)
+            self._coast_ids, self._coast_segs, self._coast_miss = cand_ids[coast], pred[coast], miss[coast]
+            lost = cand_ids[missed & ~coast]
         else:
-            lost = self.ids
+            lost = cand_ids
+            self._coast_ids, self._coast_segs = np.zeros(0, np.int64), np.zeros((0, 4))
+            self._coast_miss = np.zeros(0, np.int64)
         self._forget(lost)
         new = ids < 0
         ids[new] = np.arange(self.next_id, self.next_id + new.sum())
