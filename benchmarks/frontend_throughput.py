@@ -142,6 +142,13 @@ def accuracy(path: Path, cfg: SynthConfig, tracks) -> dict:
                 continue
             horiz_err.append(float(np.min(_line_angle_deg(d[None], horizontal_axes @ R_cw.T))))
     good, bad = track_match_precision(ids_per_frame, gid_per_frame)
+    # fragmentation: how many track ids follow one GT segment, and for how many frames each
+    ids_all = np.concatenate(ids_per_frame)
+    gid_all = np.concatenate(gid_per_frame)
+    on = gid_all >= 0
+    pairs = np.unique(np.stack([gid_all[on], ids_all[on]], axis=1), axis=0)
+    tracks_per_gt = float(np.mean(np.bincount(pairs[:, 0])[np.unique(pairs[:, 0])])) if len(pairs) else 0.0
+    obs_per_gt_track = float(on.sum() / max(1, len(pairs)))
     # LBD matching between consecutive keyframes (the descriptors the frontend stored)
     kfs = np.flatnonzero(tracks.is_keyframe)
     kgood = kbad = 0
@@ -171,6 +178,8 @@ def accuracy(path: Path, cfg: SynthConfig, tracks) -> dict:
         "segment_recall_of_gt_with_contrast": round(float(np.mean(rec_contrast)), 4),
         "track_match_precision": round(good / max(1, good + bad), 4),
         "track_matches_on_gt": good + bad,
+        "segment_tracks_per_gt_segment": round(tracks_per_gt, 2),
+        "observations_per_gt_segment_track": round(obs_per_gt_track, 2),
         "keyframe_lbd_match_precision": round(kgood / max(1, kgood + kbad), 4),
         "keyframe_lbd_matches_on_gt": kgood + kbad,
         "vertical_err_deg_median": round(float(np.median(vert_err)), 3) if len(vert_err) else None,
