@@ -349,11 +349,13 @@ class _PostProcess:
         """float32 BGR in [0, 1.5] -> uint8 BGR frame."""
         if self.c.motion_blur > 0 and depth is not None:
             img = self._blur(i, img, depth)
-        out = img * (np.float32(WHITE_LEVEL) * self.gain[i])
+        gain = float(WHITE_LEVEL * self.gain[i])
         if self.c.noise_sigma > 0:
             rng = np.random.default_rng([self.c.seed, 31, i])
-            out += rng.standard_normal(out.shape, dtype=np.float32) * np.float32(self.c.noise_sigma)
-        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+            noise = rng.standard_normal(img.shape, dtype=np.float32)
+            # one pass: round and saturate gain * img + sigma * noise to 8 bits
+            return cv2.addWeighted(img, gain, noise, float(self.c.noise_sigma), 0.0, dtype=cv2.CV_8U)
+        return cv2.convertScaleAbs(img, alpha=gain)  # img >= 0: rounds and saturates
 
     def image_motion(self, i: int, depth: np.ndarray) -> np.ndarray:
         """Median image motion (dx, dy) in pixels per frame at frame i (from depth and the next pose)."""
