@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from papl_mapper.atomic import output_mode
 from papl_mapper.errors import ConfigError, InputError
 from papl_mapper.map import Map
 
@@ -106,8 +107,7 @@ def write_atomic(path: Path, data: bytes) -> Path:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
-        mode = path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_umask()
-        os.chmod(tmp, mode)
+        os.chmod(tmp, output_mode(path))
         os.replace(tmp, path)
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)
@@ -117,9 +117,3 @@ def write_atomic(path: Path, data: bytes) -> Path:
         raise
     log.debug("wrote %s (%s bytes)", path, f"{len(data):,}")
     return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

@@ -18,7 +18,6 @@ import math
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import BackendUnavailableError, InputError
 from papl_mapper.map import Map
 from papl_mapper.palette import UNANCHORED_RGB, axis_colors, axis_names, line_colors
@@ -441,14 +441,8 @@ def _compose(
 def _save_png(img: np.ndarray, path: Path) -> None:
     from PIL import Image
 
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".png") as tmp:
         Image.fromarray(img).save(tmp, optimize=False, compress_level=4)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ---- public ---------------------------------------------------------------------------------
@@ -565,9 +559,8 @@ def _turntable(
         if progress:
             progress(len(options.views) + k + 1, total, f"turntable {k + 1}")
     path = out_dir / f"turntable.{options.turntable}"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=out_dir)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=path.suffix) as tmp_path:
+        tmp = str(tmp_path)
         if options.turntable == "gif":
             from PIL import Image
 
@@ -587,8 +580,4 @@ def _turntable(
             for f in frames:
                 vw.write(np.ascontiguousarray(f[..., ::-1]))
             vw.release()
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import BackendUnavailableError, InputError, PaplError
 from papl_mapper.map import Map
 from papl_mapper.palette import UNANCHORED_RGB, axis_colors, axis_names, hex_color
@@ -568,12 +569,6 @@ def write_report(
     out_path = Path(out_path)
     text = build_report_html(run_dir_or_map, gt_dir, options)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out_path.name}.", suffix=".tmp", dir=out_path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, out_path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(out_path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
     return out_path

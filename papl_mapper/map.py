@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -21,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import MapFormatError
 
 FORMAT_NAME = "papl-map"
@@ -200,17 +200,11 @@ class Map:
             "vertical_index": int(self.axes.vertical_index),
             "metadata": self.metadata,
         }
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-        try:
-            with os.fdopen(fd, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED) as zf:
-                zf.writestr("meta.json", json.dumps(meta, indent=1, default=_json_default))
-                for name, arr in _arrays(self).items():
-                    with zf.open(f"{name}.npy", "w", force_zip64=True) as out:
-                        np.lib.format.write_array(out, np.ascontiguousarray(arr), allow_pickle=False)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED) as zf:
+            zf.writestr("meta.json", json.dumps(meta, indent=1, default=_json_default))
+            for name, arr in _arrays(self).items():
+                with zf.open(f"{name}.npy", "w", force_zip64=True) as out:
+                    np.lib.format.write_array(out, np.ascontiguousarray(arr), allow_pickle=False)
         return path
 
     @classmethod

@@ -140,3 +140,15 @@ def test_failed_save_keeps_the_previous_file(tmp_path, small_map):
     with pytest.raises(MapFormatError):
         small_map.save(path)
     assert path.read_bytes() == before
+
+
+def test_saved_map_is_readable_by_others(tmp_path, small_map):
+    """Outputs get the mode a plain open() would give, not mkstemp's owner-only 0600."""
+    import os
+
+    old = os.umask(0o022)
+    try:
+        path = small_map.save(tmp_path / "m.papl")
+    finally:
+        os.umask(old)
+    assert path.stat().st_mode & 0o777 == 0o644
