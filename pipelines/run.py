@@ -31,6 +31,7 @@ from papl_mapper.eval.trajectory import Trajectory, write_tum
 from papl_mapper.frontend import FrontendStats, process
 from papl_mapper.frontend.camera import camera_for_recording
 from papl_mapper.frontend.video import open_recording
+from papl_mapper.geometry.triangulation import observation_planes
 from papl_mapper.map import Axes, LineState, Map
 from papl_mapper.mapping.assemble import (
     assemble_map,
@@ -245,6 +246,7 @@ def map_tracks(
             obs_dirs, obs_line = vp_w[known], obs_line[known]
             d = est.endpoints_w[:, 1] - est.endpoints_w[:, 0]
             d /= np.linalg.norm(d, axis=1, keepdims=True)
+            xy = tracks.line_xy[sel][known]
             structure = find_structure(
                 d,
                 est.from_vp,
@@ -253,6 +255,8 @@ def map_tracks(
                 np.array([0.0, 0.0, 1.0]),
                 cfg.axes,
                 hard=cfg.variant.association == "hard",
+                obs_normals_w=observation_planes(T_obs[known], tracks.camera.K, xy)[:, :3],
+                obs_weight=np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1),
             )
             m = assemble_map(tracks, T_by_frame, _points(m_points), est, structure.axes, structure.weights)
         m.metadata = dict(m_points.metadata)

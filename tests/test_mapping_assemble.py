@@ -97,3 +97,22 @@ def test_vertical_and_transform_keep_projections():
     assert np.allclose(m.keyframes.T_wc[0][:3, :3] @ [0, -1, 0], [0, 0, 1])
     with pytest.raises(GeometryError):
         transform_map(m, np.diag([1.0, 1, -1]))
+
+
+def test_refine_direction_recovers_the_common_direction():
+    """Planes through random centres containing one direction (+ noise, + outliers) give it back."""
+    from papl_mapper.mapping.assemble import refine_direction
+
+    rng = np.random.default_rng(3)
+    d = np.array([0.3, -0.2, 0.93])
+    d /= np.linalg.norm(d)
+    other = rng.normal(size=(300, 3))
+    normals = np.cross(d, other)  # every plane contains d
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals += rng.normal(0, 0.003, normals.shape)  # about 0.2 degrees of noise
+    normals[:60] = rng.normal(size=(60, 3))  # 20% planes of other segments
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    init = d + np.array([0.04, 0.0, -0.02])  # about 2.5 degrees off
+    est = refine_direction(normals, np.ones(300), init / np.linalg.norm(init))
+    assert np.degrees(np.arccos(abs(est @ d))) < 0.1
+    assert est @ init > 0  # the sign of the initial guess is kept

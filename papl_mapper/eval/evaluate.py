@@ -247,6 +247,9 @@ def evaluate(
 ) -> EvalResult:
     """Align `result` to the ground truth by its trajectory's Sim(3) and measure trajectory, lines, axes.
 
+    Axes are compared after the rotation that best maps the estimated camera orientations onto
+    the ground truth's (see `orientation_alignment`).
+
     `trajectory_tum` is the estimate's trajectory (every frame); None uses the map's keyframes.
     """
     config = config or EvalConfig()
@@ -307,8 +310,20 @@ def evaluate(
         names = gt.axes.names if gt.axes is not None else []
         _line_part(res, gt.segments, sim.apply(result.lines.endpoints_w), config, names)
     if gt.axes is not None:
-        _axis_part(res, gt.axes, result, sim.R)
+        _axis_part(res, gt.axes, result, orientation_alignment(est_m.T_wc, ref_m.T_wc))
     return res
+
+
+def orientation_alignment(T_est: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
+    """Rotation est world -> ref world from matched camera orientations (chordal L2 mean).
+
+    Axes are directions in the frame the camera orientations live in; aligning them with the
+    positions' Sim(3) would carry its rotation error, which is large about the direction of a
+    short, nearly straight path. Orientations fix all three rotation angles at every pose.
+    """
+    M = np.einsum("nij,nkj->ik", T_ref[:, :3, :3], T_est[:, :3, :3])  # sum R_ref R_est^T
+    u, _, vt = np.linalg.svd(M)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
 
 
 def _line_part(

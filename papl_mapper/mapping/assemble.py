@@ -11,6 +11,7 @@ import numpy as np
 from papl_mapper.errors import GeometryError
 from papl_mapper.geometry.lines import endpoint_errors, plucker_from_endpoints, plucker_to_camera
 from papl_mapper.geometry.se3 import project_points
+from papl_mapper.geometry.triangulation import observation_planes
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
 from papl_mapper.mapping.lines import LineEstimates
 from papl_mapper.tracks import Tracks
@@ -114,7 +115,37 @@ def vertical_in_world(tracks: Tracks, T_wc_by_frame: dict[int, np.ndarray]) -> n
         if len(near) == 0:
             break
         up = near.mean(axis=0)
-    return up / np.linalg.norm(up)
+    up /= np.linalg.norm(up)
+    # every segment labelled vertical in any registered frame constrains the one world vertical
+    frames = np.array(sorted(T_wc_by_frame))
+    sel = np.isin(tracks.line_frame, frames)
+    sel[sel] &= tracks.line_vp[sel] == tracks.vertical_vp[tracks.line_frame[sel]]
+    if sel.sum() >= 3:
+        T = np.stack([T_wc_by_frame[int(f)] for f in tracks.line_frame[sel]])
+        xy = tracks.line_xy[sel]
+        planes = observation_planes(T, tracks.camera.K, xy)
+        length = np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1)
+        up = refine_direction(planes[:, :3], length, up)
+    return up
+
+
+def refine_direction(
+    normals: np.ndarray, weights: np.ndarray, init: np.ndarray, gate_deg: float = 3.0
+) -> np.ndarray:
+    """The direction lying in the planes with normals (n,3), near `init`: weighted SVD on the inliers.
+
+    A segment's back-projection plane contains its 3D direction, so the common direction of
+    many segments is the smallest singular vector of their stacked plane normals; segments
+    whose plane is more than `gate_deg` off the current estimate are left out, re-gated 5 times.
+    """
+    d = init / np.linalg.norm(init)
+    for _ in range(5):
+        inl = np.abs(normals @ d) < np.sin(np.radians(gate_deg))
+        if inl.sum() < 3:
+            break
+        v = np.linalg.svd(normals[inl] * np.sqrt(weights[inl])[:, None], full_matrices=False)[2][-1]
+        d = v if v @ d >= 0 else -v
+    return d
 
 
 def rotation_to_z(up_w: np.ndarray) -> np.ndarray:

@@ -14,6 +14,7 @@ import numpy as np
 
 from papl_mapper.axes import AxesConfig, AxisState, associate, create_axes
 from papl_mapper.map import Axes
+from papl_mapper.mapping.assemble import refine_direction
 
 log = logging.getLogger(__name__)
 
@@ -58,11 +59,15 @@ def find_structure(
     config: AxesConfig | None = None,
     hard: bool = False,
     max_axes: int = 8,
+    obs_normals_w: np.ndarray | None = None,
+    obs_weight: np.ndarray | None = None,
 ) -> Structure:
     """Axes and weights for lines with directions (M,3), `structural` (M,) marking VP-classified ones.
 
     `obs_dirs_w` (K,3) / `obs_line` (K,) are the world vanishing directions of the lines'
-    observations (NaN rows for non-structural observations).
+    observations (NaN rows for non-structural observations). With the observations' world
+    back-projection plane normals (K,3) and weights (segment lengths), each horizontal axis is
+    refined over every observation classified near it, across all frames at once.
     """
     cfg = config or AxesConfig()
     n = len(line_dirs_w)
@@ -81,6 +86,15 @@ def find_structure(
             log.debug("axis creation stops: %s", res.reason or "no candidate accepted")
             break
         axes = np.vstack([axes, res.new_axes])
+        weights = line_weights(obs_dirs_w, obs_line, n, axes, cfg, hard)
+    if obs_normals_w is not None and len(axes) > 1:
+        w = np.ones(len(obs_normals_w)) if obs_weight is None else obs_weight
+        ok = np.isfinite(obs_dirs_w).all(axis=1)
+        for a in range(1, len(axes)):
+            near = ok.copy()
+            near[ok] = np.abs(obs_dirs_w[ok] @ axes[a]) > np.cos(np.radians(cfg.gate_deg / 3))
+            if near.sum() >= 3:
+                axes[a] = refine_direction(obs_normals_w[near], w[near], axes[a])
         weights = line_weights(obs_dirs_w, obs_line, n, axes, cfg, hard)
     angles = [
         np.degrees(np.arccos(np.clip(abs(a @ axes[0]), 0, 1))) for a in axes[1:]

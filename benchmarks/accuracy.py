@@ -1,0 +1,154 @@
+"""Accuracy of `papl-map run` on the synthetic scenes, every ablation variant, two noise levels.
+
+For each scene and image-noise level a walkthrough is rendered (cached under --cache), the
+frontend runs once per frontend setting (vertical prior / VP refinement variants differ there),
+and the mapping stage runs once per variant. Prints one table (ATE after Sim(3) as % of the path,
+frames with a pose, line recall/precision at 1% of the scene diagonal, vertical axis error, run
+time) and writes benchmarks/results/accuracy.json.
+
+    .venv/bin/python benchmarks/accuracy.py                       # everything (long)
+    .venv/bin/python benchmarks/accuracy.py --scenes corridor --seconds 8 --variants full,points-only
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+from papl_mapper.pipelines.config import PRESETS, RunConfig
+from papl_mapper.pipelines.run import frame_trajectory, map_tracks
+
+from papl_mapper.config import load_config
+from papl_mapper.eval import evaluate
+from papl_mapper.eval.trajectory import write_tum
+from papl_mapper.frontend import FrontendStats, open_recording, process, read_camera_file
+from papl_mapper.synth import SynthConfig, generate
+from papl_mapper.tracks import Tracks
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "benchmarks" / "results" / "accuracy.json"
+FRONTEND_KEYS = ("frontend.",)
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _recording(cache: Path, scene: str, noise: float, seconds: float) -> Path:
+    folder = cache / f"{scene}_noise{noise:g}_{seconds:g}s"
+    if not (folder / "video.mp4").exists():
+        generate(SynthConfig(scene=scene, seconds=seconds, noise_sigma=noise, seed=0), folder)
+    return folder
+
+
+def _tracks(folder: Path, overrides: list[str], cache: Path) -> tuple[Tracks, float]:
+    """Frontend tracks of a recording for the frontend part of a variant (cached on disk)."""
+    fe = [o for o in overrides if o.startswith(FRONTEND_KEYS)]
+    path = folder / f"tracks_{'_'.join(fe).replace('=', '-').replace('.', '-') or 'default'}.npz"
+    if path.exists():
+        return Tracks.load(path), float("nan")
+    cfg = load_config(RunConfig, None, fe)
+    rec = open_recording(folder / "video.mp4")
+    t0 = time.perf_counter()
+    tracks = process(rec, read_camera_file(folder / "camera.json"), cfg.frontend, stats=FrontendStats())
+    dt = time.perf_counter() - t0
+    tracks.save(path)
+    return tracks, dt
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default="corridor,atlanta,garage")
+    ap.add_argument("--noise", default="0,3", help="image noise sigmas (grey levels)")
+    ap.add_argument("--variants", default=",".join(PRESETS))
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/papl_accuracy"))
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    rows = []
+    header = (
+        f"{'scene':9} {'noise':>5} {'variant':19} {'ATE %path':>9} {'posed':>7} {'recall':>6} "
+        f"{'prec':>6} {'vert deg':>8} {'map s':>6}"
+    )
+    print(header)
+    print("-" * len(header))
+    for scene in args.scenes.split(","):
+        for noise in (float(n) for n in args.noise.split(",")):
+            folder = _recording(args.cache, scene, noise, args.seconds)
+            for variant in args.variants.split(","):
+                overrides = PRESETS[variant]
+                row = {"scene": scene, "noise": noise, "variant": variant}
+                try:
+                    tracks, fe_s = _tracks(folder, overrides, args.cache)
+                    cfg = load_config(RunConfig, None, overrides)
+                    t0 = time.perf_counter()
+                    m, _ = map_tracks(tracks, cfg)
+                    traj = frame_trajectory(tracks, m, cfg)
+                    row["map_s"] = time.perf_counter() - t0
+                    row["frontend_s"] = fe_s
+                    tum = folder / f"traj_{variant}.tum"
+                    write_tum(tum, traj)
+                    ev = evaluate(folder, m, tum)
+                    row.update(
+                        ate_rel_path=ev.ate_rmse_rel_path,
+                        ate_rmse=ev.ate_rmse,
+                        posed_fraction=ev.n_matched_poses / len(tracks),
+                        line_recall_1pct=ev.line_recall.get("1%", float("nan")),
+                        line_precision_1pct=ev.line_precision.get("1%", float("nan")),
+                        vertical_err_deg=float(ev.axis_errors_deg[0])
+                        if len(ev.axis_errors_deg)
+                        else float("nan"),
+                        n_axes=len(m.axes),
+                        lines=len(m.lines),
+                    )
+                except Exception as exc:  # noqa: BLE001 - a failed variant is a row of the table, not the end
+                    row["error"] = f"{type(exc).__name__}: {exc}"
+                rows.append(row)
+                if "error" in row:
+                    print(f"{scene:9} {noise:5g} {variant:19} failed: {row['error'][:80]}")
+                else:
+                    print(
+                        f"{scene:9} {noise:5g} {variant:19} {100 * row['ate_rel_path']:9.3f} "
+                        f"{100 * row['posed_fraction']:6.1f}% {row['line_recall_1pct']:6.3f} "
+                        f"{row['line_precision_1pct']:6.3f} {row['vertical_err_deg']:8.2f} "
+                        f"{row['map_s']:6.1f}"
+                    )
+    if not args.no_write:
+        OUT.parent.mkdir(parents=True, exist_ok=True)
+        OUT.write_text(
+            json.dumps(
+                {
+                    "benchmark": "accuracy",
+                    "seconds_per_recording": args.seconds,
+                    "rows": rows,
+                    "machine": {
+                        "nproc": os.cpu_count(),
+                        "loadavg_1m_at_end": round(os.getloadavg()[0], 2),
+                        "python": platform.python_version(),
+                        "numpy": np.__version__,
+                    },
+                    "commit": _commit(),
+                },
+                indent=1,
+                default=float,
+            )
+        )
+        print("wrote", OUT)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
