@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from papl_mapper.map import Camera
 from papl_mapper.synth import SynthConfig, make_scene, tracks_from_scene, walkthrough
+from papl_mapper.synth.path import U_TURN_OFFSET_M
 from papl_mapper.synth.project import occluded, project, visible_segments
 from papl_mapper.synth.render import Renderer
 
@@ -25,7 +26,7 @@ MIN_EDGE_FRACTION = 0.8  # of the visible, long-enough GT segments that must sit
 SHIFTED_MAX_FRACTION = 0.35  # the same test with a 1.5 deg wrong pose must mostly fail
 MIN_CLEARANCE_M = 0.3  # camera distance to any surface
 DEPTH_TOL_REL = 0.02  # rendered vs projected depth of visible GT points
-FRAMES = (0, 45, 90)
+FRAMES = (0, 20, 45, 70, 90, 110)
 DECAL_MARGIN_M = 0.1  # occluders closer than this along the ray are decals
 
 
@@ -44,11 +45,13 @@ def _bilinear(a: np.ndarray, xy: np.ndarray) -> np.ndarray:
 def edge_scores(cam, img, depth, T_wc, scene) -> tuple[int, int]:
     """(segments on an edge, segments tested) for one frame: perpendicular gradient on vs beside."""
     gx, gy = _gray_gradient(img)
-    sidx, _ = visible_segments(scene, cam, T_wc, scene.segments, occlusion=False, min_length_px=30)
+    sidx, xy = visible_segments(scene, cam, T_wc, scene.segments, occlusion=False, min_length_px=30)
     tested = passed = 0
     margin = EDGE_OFFSET_PX + 3
     near_depth = cv2.erode(np.where(np.isfinite(depth), depth, 1e6).astype(np.float32), np.ones((3, 3)))
-    for s in sidx:
+    for i, s in enumerate(sidx):
+        if _has_close_parallel(xy, i, max_px=EDGE_OFFSET_PX + 2):
+            continue  # another GT edge lies where the gradient should be weak (skirting, thin strips)
         a, b = scene.segments[s]
         X = a + np.linspace(0.05, 0.95, 40)[:, None] * (b - a)
         uv, z = project(cam, T_wc, X)
@@ -213,7 +216,8 @@ def test_path_stays_in_free_space_and_returns(name, seconds):
     assert scene.in_free_space(c[:, :2], margin=MIN_CLEARANCE_M).all()
     step = np.linalg.norm(np.diff(c, axis=0), axis=1) * 15.0
     assert 0.5 <= np.median(step) <= 1.6, "walking speed about 1 m/s"
-    assert np.linalg.norm(c[-1] - c[0]) <= 0.1 * max(np.sum(step) / 15.0, 1.0) + 0.3, "returns near the start"
+    back = np.linalg.norm(c[-1] - c[0])
+    assert back <= 0.1 * max(np.sum(step) / 15.0, 1.0) + 0.3 + 2 * U_TURN_OFFSET_M, "returns near the start"
     R = T[:, :3, :3]
     assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9)
     assert np.allclose(np.linalg.det(R), 1.0)

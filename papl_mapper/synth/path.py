@@ -2,7 +2,8 @@
 
 The route (a closed loop of waypoints in free space) is smoothed locally at its corners. A run
 long enough for most of a loop walks whole loops and ends at the start; a shorter one walks out
-along the route, turns round and walks back. Heading follows the path, with slow look-around,
+along the route keeping to the right, turns round in a U (moving, so the turn has parallax) and
+walks back. Heading follows the path, with slow look-around,
 small pitch/roll jitter and a walking bob. Poses are T_wc (camera -> world), OpenCV camera frame.
 """
 
@@ -17,6 +18,8 @@ from papl_mapper.synth.scenes import Scene
 CORNER_CUT_M = 0.8  # corners are rounded within this distance of a waypoint
 HEADING_SMOOTH_M = 0.3  # heading looks from this far behind on the path...
 LOOK_AHEAD_M = 1.5  # ...to this far ahead, so the walker looks into a corner before reaching it
+U_TURN_OFFSET_M = 0.35  # out and back: walk this far right of the route, turning round in a U
+TURN_HALF_S = 1.0  # out and back: the U-turn takes twice this long (90 deg/s)
 LOOP_FRACTION = 0.75  # walk whole loops when the distance is at least this part of one
 
 
@@ -81,9 +84,10 @@ def walkthrough(
         laps = max(1, round(dist / loop.length))
         s = t / T * laps * loop.length
         yaw = loop.heading(s)
+        side = np.zeros_like(t)
     else:
         # out and back: constant speed, reversing smoothly over 2 tau around the middle
-        tau = min(1.0, T / 6)
+        tau = min(TURN_HALF_S, T / 6)
         v = speed * np.clip((T / 2 - t) / tau, -1.0, 1.0)
         s = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / fps)])
         turn = np.clip((t - (T / 2 - tau)) / (2 * tau), 0.0, 1.0)
@@ -91,7 +95,10 @@ def walkthrough(
         yaw_out = loop.heading(s, 1.0)
         yaw_back = yaw_out + np.mod(loop.heading(s, -1.0) - yaw_out, 2 * math.pi)  # turning left
         yaw = yaw_out + turn * (yaw_back - yaw_out)
-    xy = loop.at(s)
+        # keep to the right both ways: the turn is a U-turn with translation (parallax), not a spin
+        side = U_TURN_OFFSET_M * (2 * turn - 1)
+    route_left = loop.heading(s, 1.0) + math.pi / 2
+    xy = loop.at(s) + side[:, None] * np.stack([np.cos(route_left), np.sin(route_left)], axis=1)
     lateral = np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
     xy = xy + lateral * (0.05 * _smooth_noise(rng, t, 0.1, 0.4))[:, None]
     z = (
