@@ -64,6 +64,8 @@ class RunConfig:
     """Run a windowed BA over the newest keyframes after this many registrations (0: never)."""
     local_ba_window: int = 15
     """Keyframes optimised by each windowed BA."""
+    lines_from_all_frames: bool = True
+    """Triangulate lines from the segments of every registered frame (else keyframes only)."""
     max_point_error_px: float = 4.0
     """Point observations reprojecting further than this are culled before each bundle adjustment."""
     max_line_error_px: float = 4.0

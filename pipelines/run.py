@@ -226,7 +226,8 @@ def map_tracks(
     if cfg.variant.lines == "none":
         return m, stats
     with timer.stage("lines"):
-        T_by_frame = _poses(m)
+        # every registered frame's segments, not only the keyframes': more views, longer baselines
+        T_by_frame = frame_poses(tracks, m, cfg) if cfg.lines_from_all_frames else _poses(m)
         sel = np.isin(tracks.line_frame, list(T_by_frame))
         frames, labels = tracks.line_frame[sel], tracks.line_vp[sel]
         T_obs = np.stack([T_by_frame[int(f)] for f in frames]) if sel.any() else np.zeros((0, 4, 4))
@@ -239,7 +240,7 @@ def map_tracks(
         m_points = m
         if cfg.variant.lines == "orthonormal" or up is None:
             structure = None
-            m = assemble_map(tracks, T_by_frame, _points(m_points), est)
+            m = assemble_map(tracks, _poses(m_points), _points(m_points), est)
         else:
             obs_line = np.searchsorted(est.track, tracks.line_track[sel])
             known = np.isin(tracks.line_track[sel], est.track)
@@ -258,7 +259,9 @@ def map_tracks(
                 obs_normals_w=observation_planes(T_obs[known], tracks.camera.K, xy)[:, :3],
                 obs_weight=np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1),
             )
-            m = assemble_map(tracks, T_by_frame, _points(m_points), est, structure.axes, structure.weights)
+            m = assemble_map(
+                tracks, _poses(m_points), _points(m_points), est, structure.axes, structure.weights
+            )
         m.metadata = dict(m_points.metadata)
     with timer.stage("ba_full"):
         m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines)")
@@ -291,7 +294,7 @@ def map_tracks(
 
 def _ba(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> tuple[Map, dict[str, Any]]:
     """Outliers culled, then global BA with a progress bar per LM iteration; the map and statistics."""
-    culled = cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views)
+    culled = cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views, 1)
     log.info("%s: culled %s", title, ", ".join(f"{v} {k}" for k, v in culled.items() if v) or "nothing")
     with progress(title) as cb:
         res = global_ba(m, cfg.ba, progress=lambda i, n, cost: cb(i, n, f"cost {cost:.6g}"))
@@ -334,30 +337,35 @@ def _points(m: Map) -> dict[int, np.ndarray]:
     return {int(i): x for i, x in zip(m.points.ids, m.points.xyz, strict=True)}
 
 
-def frame_trajectory(tracks: Tracks, m: Map, cfg: RunConfig) -> Trajectory:
-    """A pose for every frame: keyframes from the map, the others by PnP against the map's points."""
+def frame_poses(tracks: Tracks, m: Map, cfg: RunConfig) -> dict[int, np.ndarray]:
+    """T_wc of every frame that has one: keyframes from the map, the others by PnP on its points."""
     K = tracks.camera.K
     kf = _poses(m)
     pid = m.points.ids
-    stamps, poses = [], []
+    out: dict[int, np.ndarray] = {}
     last = None
     for f in range(len(tracks)):
         if f in kf:
             T_wc = kf[f]
         else:
             ids, uv = tracks.points_in(f)
-            idx = np.searchsorted(pid, ids)
-            idx = np.minimum(idx, len(pid) - 1)
-            known = (len(pid) > 0) & (pid[idx] == ids) if len(pid) else np.zeros(len(ids), bool)
+            idx = np.minimum(np.searchsorted(pid, ids), max(len(pid) - 1, 0))
+            known = pid[idx] == ids if len(pid) else np.zeros(len(ids), bool)
             guess = np.linalg.inv(last) if last is not None else None
             res = track_pnp(m.points.xyz[idx[known]], uv[known], K, guess, cfg.mapping.pnp)
             if not res.ok:
                 continue
             T_wc = np.linalg.inv(res.T_cw)
-        last = T_wc
-        stamps.append(tracks.timestamp[f])
-        poses.append(T_wc)
-    return Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4), "trajectory")
+        last = out[f] = T_wc
+    return out
+
+
+def frame_trajectory(tracks: Tracks, m: Map, cfg: RunConfig) -> Trajectory:
+    """A pose for every frame that has one (see `frame_poses`), as a timestamped trajectory."""
+    poses = frame_poses(tracks, m, cfg)
+    frames = np.array(sorted(poses), np.int64)
+    T = np.array([poses[int(f)] for f in frames]).reshape(-1, 4, 4)
+    return Trajectory(tracks.timestamp[frames].astype(np.float64), T, "trajectory")
 
 
 def _per_frame(tracks: Tracks) -> dict[str, list[int]]:

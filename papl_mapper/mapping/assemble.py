@@ -61,6 +61,12 @@ def assemble_map(
     axes = axes or Axes.empty()
     n_axes = len(axes)
     weights = np.zeros((len(lines.track), n_axes)) if line_weights is None else np.asarray(line_weights)
+    seen = np.isin(lines.track, tracks.line_track[np.isin(tracks.line_frame, frames)])
+    if not seen.all():  # a line needs a keyframe observation to be in the map
+        lines = LineEstimates(
+            lines.track[seen], lines.endpoints_w[seen], lines.from_vp[seen], lines.rms_px[seen]
+        )
+        weights = weights[seen]
     anchored = weights.sum(axis=1) > 0 if n_axes else np.zeros(len(lines.track), bool)
     sel = np.isin(tracks.line_track, lines.track) & np.isin(tracks.line_frame, frames)
     obs_ids = np.column_stack([tracks.line_track[sel], tracks.line_frame[sel]]).astype(np.int64)
@@ -177,11 +183,15 @@ def transform_map(m: Map, R: np.ndarray, t: np.ndarray | None = None, scale: flo
     return m
 
 
-def cull_observations(m: Map, max_point_px: float, max_line_px: float, min_views: int = 2) -> dict[str, int]:
+def cull_observations(
+    m: Map, max_point_px: float, max_line_px: float, min_views: int = 2, min_line_views: int = 2
+) -> dict[str, int]:
     """Drop outlier observations (in place): reprojection error over the limits or behind the camera.
 
-    Points and lines left with fewer than `min_views` distinct keyframes are removed with their
-    observations, so bundle adjustment never sees an unconstrained landmark. Returns the counts.
+    Points left with fewer than `min_views` distinct keyframes, and lines with fewer than
+    `min_line_views`, are removed with their observations, so bundle adjustment never sees an
+    unconstrained point. (A line triangulated from many frames may keep a single keyframe view:
+    BA holds it as it is.) Returns the counts.
     """
     kf_row = {int(k): i for i, k in enumerate(m.keyframes.ids)}
     T = m.keyframes.T_wc
@@ -212,7 +222,7 @@ def cull_observations(m: Map, max_point_px: float, max_line_px: float, min_views
         ok = (z > 0) & (err <= max_line_px)
         counts["line_observations"] = int((~ok).sum())
         ln.obs_ids, ln.obs_xy = ln.obs_ids[ok], ln.obs_xy[ok]
-    keep = _views(ln.ids, ln.obs_ids) >= min_views
+    keep = _views(ln.ids, ln.obs_ids) >= min_line_views
     counts["lines"] = int((~keep).sum())
     for name in ("ids", "endpoints_w", "axis_weights", "state", "ref_keyframe_id", "inverse_depth"):
         setattr(ln, name, getattr(ln, name)[keep])
