@@ -78,7 +78,8 @@ class FrontendConfig:
     report_tracked_vertical: bool = True
     """Report the tracked vertical (carried by the point rotation, blended with each frame's
     refined one) as the frame's vertical direction, instead of the frame's own refinement, which
-    is off by several degrees in frames with few vertical segments."""
+    is off by several degrees in frames with few vertical segments. Not with vp.use_vertical_prior
+    off (that ablation reports each frame's own directions)."""
     vertical_init_frames: int = 30
     """The vertical is initialised from the segments of this many first frames."""
     min_texture_std: float = 2.0
@@ -462,7 +463,7 @@ def _vanishing(
         labels[bounds[f] : bounds[f + 1]] = res.labels
         if vertical is not None:
             vertical = update_vertical(vertical, res.vertical_c, None, config.vp)
-            if config.report_tracked_vertical and res.vertical_index == 0:
+            if config.report_tracked_vertical and config.vp.use_vertical_prior and res.vertical_index == 0:
                 dirs_c = res.dirs_c.copy()
                 dirs_c[0] = vertical
                 res = dataclasses.replace(res, dirs_c=dirs_c)
