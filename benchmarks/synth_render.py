@@ -1,9 +1,10 @@
 """Benchmark: synthetic rendering speed per scene at 640x480 and 1280x720, on one core.
 
-Renders frames spread along each scene's walkthrough with OpenCV limited to one thread, with and
-without 2x supersampling, and times one full `generate` (render, blur/noise/exposure, mp4 encode,
-ground truth) at 640x480. Reports wall-clock and process-CPU frames per second: the machine is
-shared, so CPU time is the steadier figure. Prints a table, writes benchmarks/results/synth_render.json.
+Renders frames spread along each scene's walkthrough with OpenCV limited to one thread: no
+supersampling, 2x supersampling, and 2x multisampling (coverage per sample, textures per pixel).
+Times one full `generate` (render, blur/noise/exposure, mp4 encode, ground truth) at 640x480.
+Reports wall-clock and process-CPU frames per second: the machine is shared, so CPU time is the
+steadier figure. Prints a table, writes benchmarks/results/synth_render.json.
 Usage: .venv/bin/python benchmarks/synth_render.py [--frames N]
 """
 
@@ -27,7 +28,7 @@ from papl_mapper.synth.render import Renderer
 ROOT = Path(__file__).resolve().parents[1]
 
 SIZES = ((640, 480), (1280, 720))
-SUPERSAMPLE = (1, 2)
+MODES = ((1, False), (2, False), (2, True))  # (supersample, msaa)
 
 
 def _commit() -> str:
@@ -39,12 +40,12 @@ def _commit() -> str:
         return "unknown"
 
 
-def bench_render(scene_name: str, width: int, height: int, ss: int, n_frames: int) -> dict:
+def bench_render(scene_name: str, width: int, height: int, ss: int, msaa: bool, n_frames: int) -> dict:
     cfg = SynthConfig(scene=scene_name, width=width, height=height, seconds=20.0, supersample=ss)
     t0 = time.perf_counter()
     scene = make_scene(scene_name, 0)
     cam = cfg.camera()
-    renderer = Renderer(scene, cam, ss)
+    renderer = Renderer(scene, cam, ss, msaa=msaa)
     setup_s = time.perf_counter() - t0
     _, T = walkthrough(scene, cfg.n_frames, cfg.fps, 0)
     idx = np.linspace(0, len(T) - 1, n_frames).round().astype(int)
@@ -61,6 +62,7 @@ def bench_render(scene_name: str, width: int, height: int, ss: int, n_frames: in
         "width": width,
         "height": height,
         "supersample": ss,
+        "msaa": msaa,
         "frames": int(n_frames),
         "render_fps_wall": round(n_frames / wall, 2),
         "render_fps_cpu": round(n_frames / cpu, 2),
@@ -101,11 +103,12 @@ def main() -> int:
     rows = []
     for name in ("corridor", "atlanta", "garage"):
         for w, h in SIZES:
-            for ss in SUPERSAMPLE:
-                rows.append(bench_render(name, w, h, ss, args.frames))
+            for ss, msaa in MODES:
+                rows.append(bench_render(name, w, h, ss, msaa, args.frames))
                 r = rows[-1]
                 print(
-                    f"{name:<9} {w}x{h:<5} ss={ss}  {r['render_fps_wall']:7.1f} fps wall  "
+                    f"{name:<9} {w}x{h:<5} ss={ss}{' msaa' if msaa else '     '}  "
+                    f"{r['render_fps_wall']:7.1f} fps wall  "
                     f"{r['render_fps_cpu']:7.1f} fps cpu  "
                     f"(median {r['ms_per_frame_cpu_median']:.1f} ms cpu/frame, "
                     f"{r['render_fps_cpu_median']:.1f} fps)",

@@ -272,3 +272,24 @@ def test_frames_folder_with_other_files_is_refused(tmp_path):
     with pytest.raises(InputError, match="other than frames"):
         generate(SynthConfig(**{**TINY, "seconds": 0.3, "write_frames": True}), out)
     assert (out / "frames" / "holiday.jpg").exists() and not (out / "video.mp4").exists()
+
+
+def test_every_option_round_trips_through_the_command_line():
+    cfg = SynthConfig(
+        scene="atlanta",
+        width=320,
+        height=200,
+        fps=24.0,
+        seconds=3.5,
+        hfov_deg=80.0,
+        noise_sigma=2.5,
+        motion_blur=0.3,
+        exposure_jitter=0.2,
+        seed=9,
+        write_frames=True,
+        supersample=3,
+        speed=1.3,
+        msaa=True,
+    )
+    args = build_parser().parse_args(shlex.split(cfg.command("some dir"))[1:])
+    assert config_from_args(args) == cfg and args.out == "some dir"

@@ -33,6 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
     p.add_argument("--supersample", type=int, default=d.supersample, help="anti-aliasing factor 1..4 (2)")
     p.add_argument("--speed", type=float, default=d.speed, help=f"walking speed m/s (default {d.speed:g})")
+    p.add_argument("--msaa", action="store_true", help="textures once per pixel: faster, slightly softer")
     p.add_argument("--frames", action="store_true", help="also write frames/NNNNNN.png")
     p.set_defaults(func=run)
 
@@ -53,6 +54,7 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
         write_frames=args.frames,
         supersample=args.supersample,
         speed=args.speed,
+        msaa=args.msaa,
     )
 
 

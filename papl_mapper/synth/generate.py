@@ -73,6 +73,8 @@ class SynthConfig:
     """Render at this multiple of the resolution and area-average down (anti-aliasing); 1..4."""
     speed: float = 1.0
     """Walking speed in metres per second."""
+    msaa: bool = False
+    """With supersampling, look textures up once per pixel (edges still anti-aliased): ~30% faster."""
 
     @property
     def n_frames(self) -> int:
@@ -114,6 +116,8 @@ class SynthConfig:
         args += ["--noise", f"{self.noise_sigma:g}", "--blur", f"{self.motion_blur:g}"]
         args += ["--exposure", f"{self.exposure_jitter:g}", "--seed", str(self.seed)]
         args += ["--supersample", str(self.supersample), "--speed", f"{self.speed:g}"]
+        if self.msaa:
+            args.append("--msaa")
         if self.write_frames:
             args.append("--frames")
         return shlex.join(args)
@@ -134,7 +138,7 @@ def generate(
     camera = config.camera()
     n = config.n_frames
     timestamps, T_wc = walkthrough(scene, n, config.fps, config.seed, config.speed)
-    renderer = Renderer(scene, camera, config.supersample)
+    renderer = Renderer(scene, camera, config.supersample, msaa=config.msaa)
     post = _PostProcess(config, camera, timestamps, T_wc)
     (out / "gt").mkdir(exist_ok=True)
     tmp_video = out / ".video.tmp.mp4"
