@@ -293,3 +293,15 @@ def test_every_option_round_trips_through_the_command_line():
     )
     args = build_parser().parse_args(shlex.split(cfg.command("some dir"))[1:])
     assert config_from_args(args) == cfg and args.out == "some dir"
+
+
+def test_interrupted_run_leaves_no_video_and_no_temporary_files(tmp_path):
+    out = tmp_path / "run"
+
+    def interrupt(done, total, message):
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        generate(SynthConfig(**{**TINY, "seconds": 1.0, "write_frames": True}), out, progress=interrupt)
+    assert not list(out.iterdir()), "nothing half-written"

@@ -140,7 +140,6 @@ def generate(
     timestamps, T_wc = walkthrough(scene, n, config.fps, config.seed, config.speed)
     renderer = Renderer(scene, camera, config.supersample, msaa=config.msaa)
     post = _PostProcess(config, camera, timestamps, T_wc)
-    (out / "gt").mkdir(exist_ok=True)
     tmp_video = out / ".video.tmp.mp4"
     frames_tmp = out / ".frames.tmp" if config.write_frames else None
     if frames_tmp is not None:
@@ -170,6 +169,7 @@ def generate(
     # everything is staged under temporary names, then renamed in one quick run at the end
     staged = [(tmp_video, out / "video.mp4")]
     try:
+        (out / "gt").mkdir(exist_ok=True)
         staged.append(_stage_text(out / "timestamps.txt", "".join(f"{t:.9f}\n" for t in timestamps)))
         staged.append(_stage_text(out / "camera.json", json.dumps(camera.to_dict(), indent=2) + "\n"))
         staged.append(_stage_text(out / "gt" / "trajectory.tum", trajectory_tum(timestamps, T_wc)))
