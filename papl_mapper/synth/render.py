@@ -104,7 +104,6 @@ class Renderer:
         )
         self.tex_ab = _tex_ab(qc, scene, np.arange(len(qc)))  # (Q, 4, 2) metres in the texture frame
         self.tile_corners, self.tile_parent, self.tile_range = _tiles(scene, self.ppm)
-        self.tile_centres = self.tile_corners.mean(1)
         self.tile_ab_min = _tex_ab(self.tile_corners, scene, self.tile_parent).min(1)  # (T, 2) metres
         n_levels = np.array([len(self.pyramids[m]) for m in scene.quad_material])
         self.tile_max_level = n_levels[self.tile_parent] - 1
@@ -200,9 +199,9 @@ class Renderer:
             if clipped:  # the homography also maps points behind the camera: bound by the polygon
                 mask = cv2.bitwise_and(mask, _polygon_mask(uv, x0, y0, w, h))
             a, b, c = inv_plane[q]
-            invz = (np.float32(a) * xs_all[x0:x1])[None] + (np.float32(b) * ys_all[y0:y1] + np.float32(c))[
-                :, None
-            ]
+            inv_x = np.float32(a) * xs_all[x0:x1]
+            inv_y = np.float32(b) * ys_all[y0:y1] + np.float32(c)
+            invz = inv_x[None] + inv_y[:, None]
             zb = zbuf[y0:y1, x0:x1]
             m = cv2.bitwise_and(cv2.compare(invz, zb, cv2.CMP_GT), mask)
             bx, by, bw, bh = cv2.boundingRect(m)  # warp only where the quad wins the depth test
