@@ -27,7 +27,7 @@ class LevenbergMarquardt:
         lambda_initial: float = 1e-4,
         lambda_factor: float = 10.0,
         lambda_max: float = 1e10,
-        lambda_min: float = 1e-12,
+        lambda_min: float = 1e-9,
     ) -> None:
         self.graph = graph
         self.values = values
@@ -56,7 +56,8 @@ class LevenbergMarquardt:
         return damp
 
     def iterate(self) -> bool:
-        """Returns True if a step was accepted, False if lambda ran past its maximum (no decrease found)."""
+        """Returns True if a step was accepted, False if lambda ran past its maximum (no decrease found).
+        An indeterminate damped system counts as a rejected step, as in gtsam's LM."""
         t = time.perf_counter()
         lin = self.graph.linearize(self.values)
         self.linearize_s += time.perf_counter() - t
@@ -68,13 +69,18 @@ class LevenbergMarquardt:
             damped = gtsam.GaussianFactorGraph()
             damped.push_back(lin)
             damped.push_back(self._damping(self.lam))
-            delta = damped.optimize(self.ordering)
+            try:
+                delta = damped.optimize(self.ordering)
+            except RuntimeError:  # indeterminate at this damping (as gtsam's LM: damp more)
+                delta = None
             self.solve_s += time.perf_counter() - t
             self.n_solve += 1
-            t = time.perf_counter()
-            new_values = self.values.retract(delta)
-            new_error = float(self.graph.error(new_values))
-            self.error_s += time.perf_counter() - t
+            new_error = np.inf
+            if delta is not None:
+                t = time.perf_counter()
+                new_values = self.values.retract(delta)
+                new_error = float(self.graph.error(new_values))
+                self.error_s += time.perf_counter() - t
             if np.isfinite(new_error) and new_error < self.error:
                 self.values, self.error = new_values, new_error
                 self.lam = max(self.lam / self.factor, self.lam_min)
