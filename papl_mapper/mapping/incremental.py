@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from papl_mapper.geometry.se3 import invert
+from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.tracking import PnPConfig, PnPResult, track_pnp
 from papl_mapper.tracks import Tracks
@@ -100,43 +102,55 @@ def triangulate_multiview(
 
 
 def _triangulate_new(tracks: Tracks, reg: Registration, frame: int, cfg: IncrementalConfig) -> int:
-    """Triangulate the point tracks seen in `frame` from all their registered keyframes.
+    """Triangulate the point tracks seen in `frame` from all their registered keyframes (vectorised).
 
     New tracks enter the map once their rays span `min_parallax_deg`; mapped ones are
-    re-triangulated when the new view widens their ray angle, so early low-parallax depths
-    mature instead of dragging the scale. Returns the number of new points.
+    re-triangulated when the new view widens their ray angle by a fifth, so early low-parallax
+    depths mature instead of dragging the scale. Returns the number of new points.
     """
     K = tracks.camera.K
     ids, _ = tracks.points_in(frame)
+    ids = np.array(
+        [t for t in ids.tolist() if reg.point_angle.get(t, 0.0) < cfg.mature_parallax_deg], np.int64
+    )
     if len(ids) == 0:
         return 0
-    registered = np.array(reg.frames)
-    sel = np.isin(tracks.point_track, ids) & np.isin(tracks.point_frame, registered)
-    obs_track, obs_frame, obs_uv = tracks.point_track[sel], tracks.point_frame[sel], tracks.point_uv[sel]
-    order = np.argsort(obs_track, kind="stable")
-    obs_track, obs_frame, obs_uv = obs_track[order], obs_frame[order], obs_uv[order]
-    starts = np.flatnonzero(np.r_[True, obs_track[1:] != obs_track[:-1]])
-    ends = np.r_[starts[1:], len(obs_track)]
+    sel = np.isin(tracks.point_track, ids) & np.isin(tracks.point_frame, np.array(reg.frames))
+    obs_track, obs_frame, uv = tracks.point_track[sel], tracks.point_frame[sel], tracks.point_uv[sel]
+    uniq, point_index = np.unique(obs_track, return_inverse=True)
+    T_cw = np.stack([reg.T_cw[int(f)] for f in obs_frame])
+    X, ok = triangulate_points(point_index, invert(T_cw), K, uv, len(uniq), cfg.min_parallax_deg)
+    Xc = np.einsum("kij,kj->ki", T_cw[:, :3, :3], X[point_index]) + T_cw[:, :3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = Xc @ K.T
+        err = np.where(Xc[:, 2] > 0, np.linalg.norm(proj[:, :2] / proj[:, 2:3] - uv, axis=1), np.inf)
+    max_err = np.zeros(len(uniq))
+    np.maximum.at(max_err, point_index, err)
+    angle = _ray_angle_deg(point_index, invert(T_cw)[:, :3, 3], X, len(uniq))
+    ok &= (max_err < cfg.max_reprojection_px) & (angle >= cfg.min_parallax_deg)
     added = 0
-    for s, e in zip(starts, ends, strict=True):
-        if e - s < 2:
+    for i in np.flatnonzero(ok):
+        tid = int(uniq[i])
+        old = reg.point_angle.get(tid)
+        if old is not None and angle[i] < 1.2 * old:
             continue
-        tid = int(obs_track[s])
-        old_angle = reg.point_angle.get(tid)
-        if old_angle is not None and old_angle >= cfg.mature_parallax_deg:
-            continue
-        T = np.stack([reg.T_cw[int(f)] for f in obs_frame[s:e]])
-        X, err, angle = triangulate_multiview(T, obs_uv[s:e], K)
-        ok = np.isfinite(X).all() and angle >= cfg.min_parallax_deg and err.max() < cfg.max_reprojection_px
-        if not ok:
-            continue
-        if old_angle is None:
-            added += 1
-        elif angle < 1.2 * old_angle:
-            continue
-        reg.points_w[tid] = X
-        reg.point_angle[tid] = angle
+        added += old is None
+        reg.points_w[tid] = X[i]
+        reg.point_angle[tid] = float(angle[i])
     return added
+
+
+def _ray_angle_deg(point_index: np.ndarray, centres: np.ndarray, X: np.ndarray, n: int) -> np.ndarray:
+    """Largest angle (deg) between the rays from a point to the cameras that saw it."""
+    rays = X[point_index] - centres
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
+    mean = np.zeros((n, 3))
+    np.add.at(mean, point_index, rays)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-300)
+    # the two rays farthest from the mean, on opposite sides, span about twice the largest offset
+    cos = np.full(n, 1.0)
+    np.minimum.at(cos, point_index, np.sum(rays * mean[point_index], axis=1))
+    return 2.0 * np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def _initialise(tracks: Tracks, keyframes: np.ndarray, cfg: IncrementalConfig) -> Registration | None:
