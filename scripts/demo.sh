@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
-# The demo: the main job on the bundled sample recording, outputs in out/demo/.
+# The demo: the main job on the bundled sample recording (samples/demo), outputs in out/demo/:
+# the map, trajectories, exports (PLY, GLB, USDC), PNG previews, the HTML report and the
+# evaluation against the sample's ground truth.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PAPL=.venv/bin/papl-map
-mkdir -p out/demo
-echo "demo: the mapping pipeline (papl-map run) is not built yet (issue: the main job)."
-echo "demo: showing what exists: the ground-truth map of the bundled sample."
-if [[ -f samples/demo/gt/map.papl ]]; then
-    $PAPL info samples/demo/gt/map.papl
-else
-    echo "demo: the bundled sample is not built yet (issue: foundation, synthetic walkthroughs)."
-fi
+OUT=out/demo
+mkdir -p "$OUT"
+$PAPL run samples/demo/video.mp4 --camera samples/demo/camera.json --out "$OUT" \
+    --export ply,glb,usdc --render --report --gt samples/demo
+$PAPL info "$OUT/map.papl"
+echo "demo: open $OUT/report.html (previews in $OUT/previews/, exports $OUT/map.*)"
