@@ -64,6 +64,8 @@ class RunConfig:
     """Run a windowed BA over the newest keyframes after this many registrations (0: never)."""
     local_ba_window: int = 15
     """Keyframes optimised by each windowed BA."""
+    axis_min_support_fraction: float = 0.03
+    """A new principal axis needs at least this fraction of the structural lines behind it."""
     lines_from_all_frames: bool = True
     """Triangulate lines from the segments of every registered frame (else keyframes only)."""
     max_point_error_px: float = 4.0

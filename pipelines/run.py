@@ -150,7 +150,9 @@ def run(
         {
             "units": "arbitrary",
             "software": f"papl-mapper {__version__}",
-            "source": {"path": str(recording), "sha256": sha},
+            "source": recording.name,
+            "source_path": str(recording),
+            "source_sha256": sha,
             "camera_source": cam_src.source,
             "camera_guessed": bool(cam_src.guessed),
             "variant": config_to_dict(cfg.variant),
@@ -258,6 +260,7 @@ def map_tracks(
                 hard=cfg.variant.association == "hard",
                 obs_normals_w=observation_planes(T_obs[known], tracks.camera.K, xy)[:, :3],
                 obs_weight=np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1),
+                min_support_fraction=cfg.axis_min_support_fraction,
             )
             m = assemble_map(
                 tracks, _poses(m_points), _points(m_points), est, structure.axes, structure.weights

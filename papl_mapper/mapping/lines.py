@@ -30,6 +30,8 @@ class LineInitConfig:
     """Largest endpoint-to-line reprojection error of an accepted line (RMS over its views)."""
     min_ray_angle_deg: float = 5.0
     """An endpoint ray closer than this to the line direction gives no extent."""
+    max_length_over_depth: float = 3.0
+    """Longest accepted segment, as a multiple of its midpoint's median distance to the cameras."""
     vp_direction_spread_deg: float = 3.0
     """Largest spread of a track's world vanishing directions for the direction to be trusted."""
 
@@ -173,6 +175,10 @@ def triangulate_lines(
         ends_w = endpoint_extent(p, d, T_wc[s:e], xy[s:e], K, cfg.min_ray_angle_deg)
         if ends_w is None or np.linalg.norm(ends_w[1] - ends_w[0]) <= 0:
             reasons["no extent"] = reasons.get("no extent", 0) + 1
+            continue
+        depth = np.median(np.linalg.norm(ends_w.mean(axis=0) - T_wc[s:e, :3, 3], axis=1))
+        if np.linalg.norm(ends_w[1] - ends_w[0]) > cfg.max_length_over_depth * depth:
+            reasons["implausibly long"] = reasons.get("implausibly long", 0) + 1
             continue
         out_t.append(track[s])
         out_e.append(ends_w)

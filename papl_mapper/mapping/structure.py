@@ -7,6 +7,7 @@ its weights w_kj from the world vanishing directions it was observed with.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -61,6 +62,8 @@ def find_structure(
     max_axes: int = 8,
     obs_normals_w: np.ndarray | None = None,
     obs_weight: np.ndarray | None = None,
+    min_support_fraction: float = 0.0,
+    max_tilt_deg: float = 3.0,
 ) -> Structure:
     """Axes and weights for lines with directions (M,3), `structural` (M,) marking VP-classified ones.
 
@@ -68,9 +71,13 @@ def find_structure(
     observations (NaN rows for non-structural observations). With the observations' world
     back-projection plane normals (K,3) and weights (segment lengths), each horizontal axis is
     refined over every observation classified near it, across all frames at once.
+    Atlanta world: a new axis must be within `max_tilt_deg` of horizontal and supported by at
+    least `min_support_fraction` of the structural lines (a whole recording has many lines, so a
+    handful of misclassified ones must not found an axis).
     """
-    cfg = config or AxesConfig()
+    cfg = dataclasses.replace(config or AxesConfig())
     n = len(line_dirs_w)
+    cfg.min_support = max(cfg.min_support, int(np.ceil(min_support_fraction * structural.sum())))
     axes = np.asarray(vertical_w, np.float64).reshape(1, 3) / np.linalg.norm(vertical_w)
     weights = line_weights(obs_dirs_w, obs_line, n, axes, cfg, hard)
     while len(axes) < max_axes:
@@ -80,12 +87,16 @@ def find_structure(
             axes,
             int(free.sum()),
             cfg,
-            n_structural=int((weights.sum(axis=1) > 0).sum()),
+            # no ratio test: it guards a real-time local map against creating axes too eagerly;
+            # over a whole recording the support and mean-angle tests of the candidates suffice
+            n_structural=0,
         )
-        if len(res.new_axes) == 0:
-            log.debug("axis creation stops: %s", res.reason or "no candidate accepted")
+        tilt = np.degrees(np.arcsin(np.clip(np.abs(res.new_axes @ axes[0]), 0.0, 1.0)))
+        new = res.new_axes[tilt <= max_tilt_deg]
+        if len(new) == 0:
+            log.debug("axis creation stops: %s", res.reason or "no horizontal candidate accepted")
             break
-        axes = np.vstack([axes, res.new_axes])
+        axes = np.vstack([axes, new])
         weights = line_weights(obs_dirs_w, obs_line, n, axes, cfg, hard)
     if obs_normals_w is not None and len(axes) > 1:
         w = np.ones(len(obs_normals_w)) if obs_weight is None else obs_weight
