@@ -299,3 +299,25 @@ def test_anchor_bearing_estimate_avoids_reference_observation_noise():
         global_ba(noisy, _cfg(optimize_poses=False, anchor_bearing="estimate")).map, noisy, align=False
     )
     assert by_est["line_error"] < 0.5 * by_obs["line_error"]
+
+
+def test_line_driven_to_infinity_keeps_its_geometry(truth):
+    from papl_mapper.backend.ba import _state, _write_back
+    from papl_mapper.backend.factors import W
+
+    m = copy.deepcopy(truth)
+    m.lines.state[:] = LineState.ORTHONORMAL
+    cfg = BAConfig()
+    pb = build_problem(m, cfg)
+    g = _build_graph(m, pb, cfg)
+    g.values.update(W(0), np.array([1e-12]))  # phi -> 0: the line moves to infinity
+    out = _write_back(m, pb, _state(m, pb, g.values, g.batches))
+    row = pb.lines["orthonormal"].rows[0]
+    assert pb.dropped["lines_degenerate_after_ba"] == 1
+    assert (
+        geo.line_distance(
+            geo.plucker_from_endpoints(*out.lines.endpoints_w[row]),
+            geo.plucker_from_endpoints(*m.lines.endpoints_w[row]),
+        )
+        < 1e-9
+    )

@@ -378,10 +378,21 @@ def _write_back(m: Map, pb: Problem, st: _State) -> Map:
     out.keyframes.T_wc[pb.kf_in] = st.T[pb.kf_in]
     out.points.xyz[pb.pt_rows] = st.xyz
     out.axes.directions[:] = st.axes
+    centres = st.T[pb.kf_in, :3, 3]
+    scale = max(float(np.ptp(centres, axis=0).max()) if len(centres) else 0.0, 1.0)
     for kind, grp in pb.lines.items():
         if not len(grp):
             continue
-        L = st.lines[kind]
+        L = st.lines[kind].copy()
+        # a line driven to infinity (orthonormal phi -> 0) or to NaN keeps its input geometry, with a reason
+        bad = ~np.isfinite(L).all(axis=1) | (np.linalg.norm(np.nan_to_num(L[:, :3]), axis=1) > 1e4 * scale)
+        if bad.any():
+            log.warning("BA: %d %s lines went to infinity; kept as they were", int(bad.sum()), kind)
+            pb.dropped["lines_degenerate_after_ba"] = pb.dropped.get("lines_degenerate_after_ba", 0) + int(
+                bad.sum()
+            )
+            e0 = m.lines.endpoints_w[grp.rows[bad]]
+            L[bad] = geo.normalize_plucker(geo.plucker_from_endpoints(e0[:, 0], e0[:, 1]))
         owner = np.repeat(np.arange(len(grp)), np.diff(grp.obs_start))
         ends, ok = geo.clip_to_observations(L, owner, st.T[grp.obs_kf], K, grp.obs_xy, len(grp))
         if not ok.all():  # keep the old extent, projected onto the new line
