@@ -430,9 +430,7 @@ def main() -> None:
             )
     os_res = open_structure(8 if args.quick else 4, 1.0)
     if os_res:
-        print(
-            "\nOpen-Structure (noise 1 px, poses 1 deg / 0.05 m, landmarks perturbed): 4-p vs 3-p"
-        )
+        print("\nOpen-Structure (noise 1 px, poses 1 deg / 0.05 m, landmarks perturbed): 4-p vs 3-p")
         for seq, r in os_res.items():
             for rep in ("4-p", "3-p", "3-p-est"):
                 x = r[rep]
