@@ -36,6 +36,7 @@ from papl_mapper.map import Axes, LineState, Map
 from papl_mapper.mapping.assemble import (
     assemble_map,
     cull_observations,
+    drop_long_lines,
     rotation_to_z,
     transform_map,
     vertical_in_world,
@@ -290,6 +291,11 @@ def map_tracks(
         if upd.adopted or upd.deleted or upd.merged:
             with timer.stage("ba_full"):
                 m, stats["ba"] = _ba(m, cfg, progress, "BA (after axis update)")
+    dropped = drop_long_lines(m, cfg.lines.max_length_over_depth)
+    if dropped:
+        log.info(
+            "%d lines longer than %g x their depth dropped after BA", dropped, cfg.lines.max_length_over_depth
+        )
     if len(m.axes) and m.axes.vertical_index >= 0:
         transform_map(m, rotation_to_z(_up(m.axes)))
     return m, stats

@@ -108,8 +108,8 @@ def _extras(args: argparse.Namespace, cfg, result) -> None:
     for fmt in cfg.output.export:
         from papl_mapper.exporters import export
 
-        path = export(result.map, out / f"map.{fmt.strip().lstrip('.')}")
-        print(f"wrote {path}")
+        for path in export(result.map, out / f"map.{fmt.strip().lstrip('.')}"):
+            print(f"wrote {path}")
     if args.gt is not None:
         import json
 

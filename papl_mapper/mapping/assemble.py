@@ -245,3 +245,22 @@ def _views(ids: np.ndarray, obs_ids: np.ndarray) -> np.ndarray:
         return np.zeros(len(ids), np.int64)
     pairs = np.unique(obs_ids, axis=0)
     return np.bincount(np.searchsorted(ids, pairs[:, 0]), minlength=len(ids))
+
+
+def drop_long_lines(m: Map, max_length_over_depth: float) -> int:
+    """Remove lines (in place) longer than `max_length_over_depth` times their distance to the
+    keyframes that saw them: a segment seen almost end-on gets an unbounded extent in BA's clipping."""
+    ln = m.lines
+    if len(ln) == 0:
+        return 0
+    kf_row = np.searchsorted(m.keyframes.ids, ln.obs_ids[:, 1])
+    row = np.searchsorted(ln.ids, ln.obs_ids[:, 0])
+    dist = np.linalg.norm(ln.endpoints_w[row].mean(axis=1) - m.keyframes.T_wc[kf_row, :3, 3], axis=1)
+    depth = np.full(len(ln), np.inf)
+    np.minimum.at(depth, row, dist)  # nearest observing keyframe: the most generous bound
+    keep = ln.lengths() <= max_length_over_depth * depth
+    for name in ("ids", "endpoints_w", "axis_weights", "state", "ref_keyframe_id", "inverse_depth"):
+        setattr(ln, name, getattr(ln, name)[keep])
+    sel = np.isin(ln.obs_ids[:, 0], ln.ids)
+    ln.obs_ids, ln.obs_xy = ln.obs_ids[sel], ln.obs_xy[sel]
+    return int((~keep).sum())
