@@ -66,6 +66,9 @@ class RunConfig:
     """Keyframes optimised by each windowed BA."""
     axis_min_support_fraction: float = 0.03
     """A new principal axis needs at least this fraction of the structural lines behind it."""
+    stray_line_margin: float = 0.2
+    """Lines reaching beyond the points' extent (1-99 percentiles) by this fraction of its diagonal are
+    dropped after BA."""
     lines_from_all_frames: bool = True
     """Triangulate lines from the segments of every registered frame (else keyframes only)."""
     max_point_error_px: float = 4.0

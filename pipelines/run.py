@@ -36,7 +36,7 @@ from papl_mapper.map import Axes, LineState, Map
 from papl_mapper.mapping.assemble import (
     assemble_map,
     cull_observations,
-    drop_long_lines,
+    drop_stray_lines,
     rotation_to_z,
     transform_map,
     vertical_in_world,
@@ -291,11 +291,9 @@ def map_tracks(
         if upd.adopted or upd.deleted or upd.merged:
             with timer.stage("ba_full"):
                 m, stats["ba"] = _ba(m, cfg, progress, "BA (after axis update)")
-    dropped = drop_long_lines(m, cfg.lines.max_length_over_depth)
+    dropped = drop_stray_lines(m, cfg.stray_line_margin)
     if dropped:
-        log.info(
-            "%d lines longer than %g x their depth dropped after BA", dropped, cfg.lines.max_length_over_depth
-        )
+        log.info("%d lines reaching outside the points' extent dropped after BA", dropped)
     if len(m.axes) and m.axes.vertical_index >= 0:
         transform_map(m, rotation_to_z(_up(m.axes)))
     return m, stats

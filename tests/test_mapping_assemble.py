@@ -118,14 +118,16 @@ def test_refine_direction_recovers_the_common_direction():
     assert est @ init > 0  # the sign of the initial guess is kept
 
 
-def test_drop_long_lines():
-    from papl_mapper.mapping.assemble import drop_long_lines
+def test_drop_stray_lines():
+    from papl_mapper.mapping.assemble import drop_stray_lines
 
     tr = _tracks()
     T = {f: np.eye(4) for f in range(4)}
-    ends = np.array([[[0, 0, 5.0], [0, 1, 5]], [[0, 0, 5.0], [0, 40, 5]]])  # 1 and 40 units at depth 5
+    ends = np.array([[[0, 0, 5.0], [0, 1, 5]], [[0, 0, 5.0], [0, 40, 5]]])  # the second runs away
     lines = LineEstimates(np.array([7, 9]), ends, np.array([True, True]), np.zeros(2))
-    m = assemble_map(tr, T, {0: np.array([0, 0, 5.0])}, lines)
-    assert drop_long_lines(m, 3.0) == 1
+    rng = np.random.default_rng(0)
+    pts = {i: x for i, x in enumerate(rng.uniform([-2, -2, 3], [2, 2, 7], (50, 3)))}
+    m = assemble_map(tr, T, pts, lines)
+    assert drop_stray_lines(m) == 1
     assert m.lines.ids.tolist() == [7] and set(m.lines.obs_ids[:, 0]) == {7}
     m.validate()

@@ -247,18 +247,18 @@ def _views(ids: np.ndarray, obs_ids: np.ndarray) -> np.ndarray:
     return np.bincount(np.searchsorted(ids, pairs[:, 0]), minlength=len(ids))
 
 
-def drop_long_lines(m: Map, max_length_over_depth: float) -> int:
-    """Remove lines (in place) longer than `max_length_over_depth` times their distance to the
-    keyframes that saw them: a segment seen almost end-on gets an unbounded extent in BA's clipping."""
+def drop_stray_lines(m: Map, margin: float = 0.2, percentile: float = 1.0) -> int:
+    """Remove lines (in place) with an endpoint outside the points' box (robust percentiles, grown
+    by `margin` of its diagonal): a segment seen almost end-on gets an unbounded extent."""
     ln = m.lines
-    if len(ln) == 0:
+    if len(ln) == 0 or len(m.points) < 20:
         return 0
-    kf_row = np.searchsorted(m.keyframes.ids, ln.obs_ids[:, 1])
-    row = np.searchsorted(ln.ids, ln.obs_ids[:, 0])
-    dist = np.linalg.norm(ln.endpoints_w[row].mean(axis=1) - m.keyframes.T_wc[kf_row, :3, 3], axis=1)
-    depth = np.full(len(ln), np.inf)
-    np.minimum.at(depth, row, dist)  # nearest observing keyframe: the most generous bound
-    keep = ln.lengths() <= max_length_over_depth * depth
+    lo = np.percentile(m.points.xyz, percentile, axis=0)
+    hi = np.percentile(m.points.xyz, 100.0 - percentile, axis=0)
+    grow = margin * np.linalg.norm(hi - lo)
+    ends = ln.endpoints_w.reshape(-1, 6)
+    inside = (ends >= np.tile(lo - grow, 2)) & (ends <= np.tile(hi + grow, 2))
+    keep = inside.all(axis=1)
     for name in ("ids", "endpoints_w", "axis_weights", "state", "ref_keyframe_id", "inverse_depth"):
         setattr(ln, name, getattr(ln, name)[keep])
     sel = np.isin(ln.obs_ids[:, 0], ln.ids)
