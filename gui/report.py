@@ -322,7 +322,11 @@ def _section_ba(summary: dict[str, Any] | None) -> str:
                 before, after = None, v
             rows += f"<tr><th>RMS reprojection error {_e(k)}</th><td class='num'>{_num(before)}</td>"
             rows += f"<td class='num'>{_num(after)}</td></tr>"
-    rest = [(k, _num(v)) for k, v in ba.items() if k not in ("initial_cost", "final_cost", "rms")]
+    rest = [
+        (k, _num(v))
+        for k, v in ba.items()
+        if k not in ("initial_cost", "final_cost", "rms") and not isinstance(v, (dict, list))
+    ]
     ic, fc = ba.get("initial_cost"), ba.get("final_cost")
     if isinstance(ic, (int, float)) and isinstance(fc, (int, float)) and ic > 0:
         rest.append(("cost reduction", f"{100 * (1 - fc / ic):.1f} %"))

@@ -315,7 +315,23 @@ def _ba(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> tuple[
         ", ".join(f"{k} {v:.3f}" for k, v in res.final_rms_px.items()),
     )
     res.map.metadata = dict(m.metadata)
-    return res.map, {**res.summary(), "culled": culled}
+    stats = {
+        "initial_cost": res.initial_cost,
+        "final_cost": res.final_cost,
+        "iterations": res.iterations,
+        "converged": res.converged,
+        "time_s": round(res.time_s, 3),
+        "rms": {k: {"before": res.initial_rms_px.get(k), "after": v} for k, v in res.final_rms_px.items()},
+        "culled_observations": sum(v for k, v in culled.items() if k.endswith("observations")),
+        "problem": {
+            "variables": res.n_variables,
+            "observations": res.n_observations,
+            "line_parameters": res.line_params,
+            "culled_before": culled,
+            "left_out": res.dropped,
+        },
+    }
+    return res.map, stats
 
 
 def _frontend_stats(ckpt: Path) -> dict[str, Any]:
