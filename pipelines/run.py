@@ -32,12 +32,13 @@ from papl_mapper.frontend import FrontendStats, process
 from papl_mapper.frontend.camera import camera_for_recording
 from papl_mapper.frontend.video import open_recording
 from papl_mapper.geometry.triangulation import observation_planes
-from papl_mapper.map import Axes, LineState, Map
+from papl_mapper.map import Axes, Map
 from papl_mapper.mapping.assemble import (
     assemble_map,
     cull_observations,
     drop_stray_lines,
     rotation_to_z,
+    set_line_states,
     transform_map,
     vertical_in_world,
     vp_directions_w,
@@ -287,7 +288,7 @@ def map_tracks(
             )
             order = np.searchsorted(est.track, m.lines.ids)
             m.lines.axis_weights = np.where(fresh[order].sum(1, keepdims=True) > 0, fresh[order], w)
-            _set_states(m)
+            set_line_states(m)
         if upd.adopted or upd.deleted or upd.merged:
             with timer.stage("ba_full"):
                 m, stats["ba"] = _ba(m, cfg, progress, "BA (after axis update)")
@@ -344,12 +345,6 @@ def _frontend_stats(ckpt: Path) -> dict[str, Any]:
 def _up(axes: Axes) -> np.ndarray:
     v = axes.directions[axes.vertical_index]
     return v if v[2] >= 0 else -v
-
-
-def _set_states(m: Map) -> None:
-    """Lines with axis weight are anchored (reference keyframe kept), the others orthonormal."""
-    anchored = m.lines.axis_weights.sum(axis=1) > 0
-    m.lines.state = np.where(anchored, LineState.ANCHORED, LineState.ORTHONORMAL).astype(np.int8)
 
 
 def _poses(m: Map) -> dict[int, np.ndarray]:

@@ -131,3 +131,23 @@ def test_drop_stray_lines():
     assert drop_stray_lines(m) == 1
     assert m.lines.ids.tolist() == [7] and set(m.lines.obs_ids[:, 0]) == {7}
     m.validate()
+
+
+def test_set_line_states_keeps_anchor_data_consistent():
+    from papl_mapper.mapping.assemble import set_line_states
+
+    tr = _tracks()
+    T = {f: np.eye(4) for f in range(4)}
+    lines = LineEstimates(
+        np.array([7, 9]),
+        np.array([[[0, 0, 5.0], [0, 1, 5]], [[1, 0, 4.0], [2, 0, 4]]]),
+        np.array([True, False]),
+        np.zeros(2),
+    )
+    axes = Axes(np.eye(3)[[1, 0]], vertical_index=0)
+    m = assemble_map(tr, T, {}, lines, axes, np.array([[1.0, 0.0], [0.0, 0.0]]))
+    m.lines.axis_weights = np.array([[0.0, 0.0], [0.0, 1.0]])  # the association swapped after an update
+    set_line_states(m)
+    m.validate()
+    assert m.lines.state.tolist() == [LineState.ORTHONORMAL, LineState.ANCHORED]
+    assert m.lines.ref_keyframe_id.tolist() == [-1, 0] and np.isclose(m.lines.inverse_depth[1], 1 / 4.0)

@@ -264,3 +264,21 @@ def drop_stray_lines(m: Map, margin: float = 0.2, percentile: float = 1.0) -> in
     sel = np.isin(ln.obs_ids[:, 0], ln.ids)
     ln.obs_ids, ln.obs_xy = ln.obs_ids[sel], ln.obs_xy[sel]
     return int((~keep).sum())
+
+
+def set_line_states(m: Map) -> None:
+    """Lines with axis weight become anchored, the others orthonormal (in place), keeping the anchor
+    data consistent: a newly anchored line is referenced to its first observing keyframe with the
+    inverse depth of its midpoint there; an orthonormal line has none."""
+    ln = m.lines
+    anchored = ln.axis_weights.sum(axis=1) > 0 if ln.axis_weights.size else np.zeros(len(ln), bool)
+    ln.state = np.where(anchored, LineState.ANCHORED, LineState.ORTHONORMAL).astype(np.int8)
+    need = np.flatnonzero(anchored & ((ln.ref_keyframe_id < 0) | ~np.isfinite(ln.inverse_depth)))
+    for i in need:
+        kfs = ln.obs_ids[ln.obs_ids[:, 0] == ln.ids[i], 1]
+        row = int(np.searchsorted(m.keyframes.ids, kfs.min()))
+        _, z = project_points(m.camera.K, m.keyframes.T_wc[row], ln.endpoints_w[i].mean(axis=0))
+        ln.ref_keyframe_id[i] = int(kfs.min())
+        ln.inverse_depth[i] = 1.0 / max(float(z), 1e-12)
+    ln.ref_keyframe_id[~anchored] = -1
+    ln.inverse_depth[~anchored] = np.nan
