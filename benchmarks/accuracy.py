@@ -68,6 +68,13 @@ def _tracks(folder: Path, overrides: list[str], cache: Path) -> tuple[Tracks, fl
     return tracks, dt
 
 
+def _f(v: float | None, width: int, digits: int) -> str:
+    """A number for the table; '-' where it is undefined (e.g. line precision without lines)."""
+    if v is None or (isinstance(v, float) and np.isnan(v)):
+        return "-".rjust(width)
+    return f"{v:{width}.{digits}f}"
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default="corridor,atlanta,garage")
@@ -121,10 +128,10 @@ def main() -> int:
                     print(f"{scene:9} {noise:5g} {variant:19} failed: {row['error'][:80]}")
                 else:
                     print(
-                        f"{scene:9} {noise:5g} {variant:19} {100 * row['ate_rel_path']:9.3f} "
-                        f"{100 * row['posed_fraction']:6.1f}% {row['line_recall_1pct']:6.3f} "
-                        f"{row['line_precision_1pct']:6.3f} {row['vertical_err_deg']:8.2f} "
-                        f"{row['map_s']:6.1f}"
+                        f"{scene:9} {noise:5g} {variant:19} {_f(100 * row['ate_rel_path'], 9, 3)} "
+                        f"{_f(100 * row['posed_fraction'], 6, 1)}% {_f(row['line_recall_1pct'], 6, 3)} "
+                        f"{_f(row['line_precision_1pct'], 6, 3)} {_f(row['vertical_err_deg'], 8, 2)} "
+                        f"{_f(row['map_s'], 6, 1)}"
                     )
     if not args.no_write:
         OUT.parent.mkdir(parents=True, exist_ok=True)
