@@ -123,3 +123,47 @@ def test_tracks_save_load_round_trip(tmp_path):
     np.savez(tmp_path / "other.npz", a=np.zeros(3))
     with pytest.raises(ValueError, match="not a tracks file"):
         Tracks.load(tmp_path / "other.npz")
+
+
+def test_segments_merge_on_matching_descriptors():
+    """Two tracking segments see the same points under different track ids; keyframe ORB descriptors
+    pair them up and the second segment is brought into the first's frame by their Sim(3)."""
+    from papl_mapper.geometry.se3 import so3_exp
+    from papl_mapper.mapping.incremental import IncrementalConfig, Registration, _merge_segments
+
+    rng = np.random.default_rng(5)
+    X = rng.uniform(-3, 3, (60, 3)) + [0, 0, 8]
+    R, t, s = so3_exp(np.array([0.1, -0.3, 0.2])), np.array([1.0, -2.0, 0.5]), 0.7
+    a = Registration(frames=list(range(10)), T_cw={f: np.eye(4) for f in range(10)})
+    b = Registration(frames=list(range(10, 15)), T_cw={f: np.eye(4) for f in range(10, 15)})
+    a.points_w = {i: X[i] for i in range(60)}
+    b.points_w = {100 + i: (X[i] - t) @ R / s for i in range(40)}  # y = s R x + t maps b into a
+    b.points_w.update({200 + i: rng.normal(size=3) for i in range(10)})  # unmatched clutter
+    desc = rng.integers(0, 256, (60, 32), dtype=np.uint8)
+    ids = np.r_[np.arange(60), 100 + np.arange(40)]
+    n = len(ids)
+    tracks = Tracks(
+        CAM,
+        np.arange(15),
+        np.arange(15) / 10.0,
+        np.ones(15, bool),
+        np.r_[np.zeros(60, int), np.full(40, 10)],
+        ids,
+        rng.uniform(0, 400, (n, 2)),
+        np.zeros(0, np.int64),
+        np.zeros(0, np.int64),
+        np.zeros((0, 4)),
+        np.zeros(0, np.int64),
+        np.full((15, 3, 3), np.nan),
+        point_desc_row=np.arange(n),
+        point_desc=np.r_[desc, desc[:40]],
+    )
+    T_b = np.eye(4)
+    T_b[:3, 3] = [0.3, 0.0, 0.1]
+    b.T_cw[12] = T_b
+    merged = _merge_segments([a, b], IncrementalConfig(), tracks)
+    assert merged is a and 12 in a.T_cw
+    # the camera of frame 12 sees a's point 0 where it saw b's point 100, up to the scale s
+    x_b = b.T_cw[12][:3, :3] @ b.points_w[100] + b.T_cw[12][:3, 3]
+    x_a = a.T_cw[12][:3, :3] @ a.points_w[0] + a.T_cw[12][:3, 3]
+    assert np.allclose(x_a, s * x_b, atol=1e-6)

@@ -48,6 +48,10 @@ class IncrementalConfig:
     """Frames in a row that fail to register before tracking counts as lost and a new segment starts."""
     merge_min_points: int = 12
     """Fewest shared points (agreeing under the Sim(3)) to merge a segment into the map."""
+    merge_ransac_iterations: int = 2000
+    """3-point samples tried when estimating a segment's Sim(3) to the map."""
+    merge_match_ratio: float = 0.8
+    """Lowe ratio for matching keyframe ORB descriptors between tracking segments."""
     merge_tolerance: float = 0.05
     """Largest point disagreement after the Sim(3), as a fraction of the map's median point spread."""
 
@@ -209,7 +213,7 @@ def register_keyframes(
             f"could not initialise from {len(keyframes)} keyframes: too little parallax or too few "
             "tracked points; try a recording with sideways or forward motion, or a lower --step"
         )
-    reg = _merge_segments(segments, cfg)
+    reg = _merge_segments(segments, cfg, tracks)
     registered = set(reg.T_cw) | set(reg.T_cw_frames)
     reg.lost = [f for f in range(len(tracks)) if f not in registered]
     reg.frames.sort()
@@ -271,8 +275,38 @@ def _extend(
     return max(f, f2)
 
 
-def _merge_segments(segments: list[Registration], cfg: IncrementalConfig) -> Registration:
-    """Chain the segments into the first one that can take them (Sim(3) on shared points)."""
+def _track_descriptors(tracks: Tracks, ids: set[int]) -> tuple[np.ndarray, np.ndarray]:
+    """One keyframe ORB descriptor per point track of `ids` that has one: (track ids, (n, 32) uint8)."""
+    if len(tracks.point_desc_row) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
+    tid = tracks.point_track[tracks.point_desc_row]
+    keep = np.isin(tid, np.fromiter(ids, np.int64, len(ids)))
+    tid, desc = tid[keep], tracks.point_desc[keep]
+    first = np.unique(tid, return_index=True)[1]
+    return tid[first], desc[first]
+
+
+def _matched_tracks(tracks: Tracks, a: set[int], b: set[int], ratio: float) -> list[tuple[int, int]]:
+    """Pairs (track in b, track in a) whose keyframe ORB descriptors match (ratio test, mutual best)."""
+    ta, da = _track_descriptors(tracks, a)
+    tb, db = _track_descriptors(tracks, b)
+    if len(ta) < 2 or len(tb) < 2:
+        return []
+    import cv2
+
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    fwd = bf.knnMatch(db, da, k=2)
+    back = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(da, db, k=1) if m}
+    pairs = []
+    for m in fwd:
+        if len(m) == 2 and m[0].distance < ratio * m[1].distance and back.get(m[0].trainIdx) == m[0].queryIdx:
+            pairs.append((int(tb[m[0].queryIdx]), int(ta[m[0].trainIdx])))
+    return pairs
+
+
+def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, tracks: Tracks) -> Registration:
+    """Chain the segments into the largest one that can take them: a Sim(3) on the points they share,
+    by track id or by matching keyframe ORB descriptors (a revisit of a mapped place)."""
     from papl_mapper.errors import PaplError
     from papl_mapper.eval.trajectory import umeyama
 
@@ -280,11 +314,18 @@ def _merge_segments(segments: list[Registration], cfg: IncrementalConfig) -> Reg
     for seg in segments:
         if seg is base:
             continue
-        common = sorted(set(seg.points_w) & set(base.points_w))
+        shared = sorted(set(seg.points_w) & set(base.points_w))
+        pairs = [(t, t) for t in shared]
+        pairs += [
+            p
+            for p in _matched_tracks(tracks, set(base.points_w), set(seg.points_w), cfg.merge_match_ratio)
+            if p[0] != p[1]
+        ]
+        common = pairs
         sim = None
         if len(common) >= cfg.merge_min_points:
-            x = np.array([seg.points_w[t] for t in common])
-            y = np.array([base.points_w[t] for t in common])
+            x = np.array([seg.points_w[tb] for tb, _ in common])
+            y = np.array([base.points_w[ta] for _, ta in common])
             try:
                 sim = _robust_sim3(x, y, umeyama, cfg)
             except PaplError as exc:
@@ -325,7 +366,7 @@ def _robust_sim3(x: np.ndarray, y: np.ndarray, umeyama: Callable, cfg: Increment
     scale = np.median(np.linalg.norm(y - np.median(y, axis=0), axis=1))
     tol = cfg.merge_tolerance * scale
     best = np.zeros(len(x), bool)
-    for _ in range(200):
+    for _ in range(cfg.merge_ransac_iterations):
         idx = rng.choice(len(x), 3, replace=False)
         try:
             sim = umeyama(x[idx], y[idx])
