@@ -17,11 +17,11 @@ import json
 import logging
 import os
 import platform
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
+from machine import git_commit
 from papl_mapper.pipelines.config import PRESETS, RunConfig
 from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 
@@ -38,12 +38,7 @@ FRONTEND_KEYS = ("frontend.",)
 
 
 def _commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+    return git_commit()
 
 
 def _recording(cache: Path, scene: str, noise: float, seconds: float) -> Path:

@@ -18,12 +18,11 @@ import argparse
 import json
 import platform
 import resource
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from machine import machine_info
 
 from papl_mapper.backend import BAConfig, global_ba
 from papl_mapper.backend.ba import _build_graph
@@ -38,20 +37,7 @@ def _rss_mib() -> float:
 
 
 def _machine() -> dict:
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    return {
-        "python": sys.version.split()[0],
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "load_average_1m_at_end": os.getloadavg()[0],
-        "processor": platform.processor(),
-        "git_commit": commit,
-    }
+    return machine_info(processor=platform.processor())
 
 
 def line_linearisation_s(m, granularity: str) -> tuple[float, int]:

@@ -22,14 +22,13 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import resource
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from machine import machine_info
 
 from papl_mapper.eval.trajectory import read_tum
 from papl_mapper.frontend import (
@@ -51,27 +50,7 @@ GOAL_FPS = 30.0
 
 
 def machine() -> dict:
-    cpu = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "git_commit": commit,
-    }
+    return machine_info()
 
 
 def recording_dir(cache: Path, width: int, height: int, seconds: float) -> tuple[Path, SynthConfig]:

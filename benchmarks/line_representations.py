@@ -20,12 +20,10 @@ import argparse  # noqa: E402
 import copy  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
-import platform  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from machine import machine_info
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from papl_mapper import geometry as geo  # noqa: E402
@@ -364,19 +362,7 @@ def open_structure(frame_step: int, obs_noise: float) -> dict | None:
 
 
 def _machine() -> dict:
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    return {
-        "python": sys.version.split()[0],
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "load_average_1m_at_end": os.getloadavg()[0],
-        "git_commit": commit,
-    }
+    return machine_info()
 
 
 def main() -> None:

@@ -10,8 +10,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -20,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine import machine_info
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -116,16 +115,7 @@ def _run(kind: str, map_path: Path, out: Path, width: int, height: int) -> dict:
 
 
 def _machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = os.getloadavg()
-    return {"nproc": os.cpu_count(), "cpu_model": cpu, "loadavg_1m_at_start": round(load[0], 2)}
+    return machine_info()
 
 
 def main() -> None:

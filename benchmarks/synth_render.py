@@ -14,13 +14,13 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
+from machine import git_commit
 
 from papl_mapper.synth import SynthConfig, generate, make_scene, walkthrough
 from papl_mapper.synth.render import Renderer
@@ -32,12 +32,7 @@ MODES = ((1, False), (2, False), (2, True))  # (supersample, msaa)
 
 
 def _commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+    return git_commit()
 
 
 def bench_render(scene_name: str, width: int, height: int, ss: int, msaa: bool, n_frames: int) -> dict:

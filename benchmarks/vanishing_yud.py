@@ -19,8 +19,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import os
-import platform
 import subprocess
 import time
 from dataclasses import replace
@@ -28,6 +26,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from machine import machine_info
 
 from papl_mapper.errors import GeometryError
 from papl_mapper.frontend.vanishing import VPConfig, classify_segments, estimate_frame, estimate_vertical
@@ -141,22 +140,7 @@ def load(data: Path) -> list[dict]:
 
 
 def _machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "nproc": os.cpu_count(),
-        "cpu_model": cpu,
-        "loadavg_1m_at_start": round(os.getloadavg()[0], 2),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "opencv": cv2.__version__,
-    }
+    return machine_info(opencv=cv2.__version__)
 
 
 def main() -> None:
