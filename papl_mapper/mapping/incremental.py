@@ -41,7 +41,9 @@ class IncrementalConfig:
     keyframe_min_inliers: int = 60
     """A frame with fewer PnP inliers becomes a keyframe (the map needs new points)."""
     keyframe_min_known: float = 0.5
-    """A frame whose inliers are fewer than this fraction of its point tracks becomes a keyframe."""
+    """A frame whose inliers are fewer than this fraction of its point tracks becomes a keyframe..."""
+    keyframe_min_gap: int = 1
+    """...if at least this many frames have passed since the last keyframe."""
     refine_every: int = 10
     """New keyframes between two calls of the refinement callback (windowed BA)."""
     max_lost_frames: int = 5
@@ -250,7 +252,8 @@ def _extend(
         misses = 0
         last_T = res.T_cw
         n_inliers = int(res.inliers.sum())
-        weak = n_inliers < cfg.keyframe_min_inliers or n_inliers < cfg.keyframe_min_known * n_tracks
+        stale = n_inliers < cfg.keyframe_min_known * n_tracks and f - max(reg.frames) >= cfg.keyframe_min_gap
+        weak = n_inliers < cfg.keyframe_min_inliers or stale
         if tracks.is_keyframe[f] or weak:
             reg.T_cw[f] = res.T_cw
             reg.frames.append(f)
