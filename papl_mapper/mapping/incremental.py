@@ -252,7 +252,8 @@ def _extend(
         misses = 0
         last_T = res.T_cw
         n_inliers = int(res.inliers.sum())
-        stale = n_inliers < cfg.keyframe_min_known * n_tracks and f - max(reg.frames) >= cfg.keyframe_min_gap
+        gap = f - max(k for k in reg.frames if k < f)
+        stale = n_inliers < cfg.keyframe_min_known * n_tracks and gap >= cfg.keyframe_min_gap
         weak = n_inliers < cfg.keyframe_min_inliers or stale
         if tracks.is_keyframe[f] or weak:
             reg.T_cw[f] = res.T_cw
