@@ -315,6 +315,10 @@ def _ba(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> tuple[
         res.time_s,
         ", ".join(f"{k} {v:.3f}" for k, v in res.final_rms_px.items()),
     )
+    if res.dropped:
+        log.info(
+            "%s: left out %s", title, ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in res.dropped.items())
+        )
     res.map.metadata = dict(m.metadata)
     stats = {
         "initial_cost": res.initial_cost,

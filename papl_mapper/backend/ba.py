@@ -361,7 +361,7 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
         n_solves=optimizer.n_solve,
     )
     out.metadata.setdefault("timings", {})["ba_s"] = time_s
-    log.info(
+    log.debug(
         "BA: cost %.6g -> %.6g in %d iterations (%.2f s); rms %s",
         initial_cost,
         cost,

@@ -144,7 +144,7 @@ def build_problem(m: Map, config: BAConfig, window: np.ndarray | None = None) ->
     if not kf_fixed.any():
         gauge = _choose_gauge(T, np.flatnonzero(kf_in))
     elif config.optimize_poses and window is not None and kf_fixed.sum() == 1:
-        log.info("BA: local window has one fixed keyframe; scale is held by a prior on a second one")
+        log.debug("BA: local window has one fixed keyframe; scale is held by a prior on a second one")
         first = int(np.flatnonzero(kf_fixed)[0])
         others = np.flatnonzero(kf_in & ~kf_fixed)
         if len(others):
@@ -158,7 +158,7 @@ def build_problem(m: Map, config: BAConfig, window: np.ndarray | None = None) ->
     n_per_axis = (lines[KIND_ANCHORED].weights > 0).sum(axis=0) if A else np.zeros(0, np.int64)
     few = axis_used & (n_per_axis < config.min_lines_per_axis)
     if few.any():
-        log.info(
+        log.debug(
             "BA: holding axes %s fixed: they anchor fewer than %d lines",
             np.flatnonzero(few).tolist(),
             config.min_lines_per_axis,
