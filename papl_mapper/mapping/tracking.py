@@ -18,7 +18,7 @@ class PnPConfig:
 
     ransac_threshold_px: float = 2.0
     """Reprojection error under which a correspondence is an inlier."""
-    min_inliers: int = 15
+    min_inliers: int = 12
     """Fewest inliers for the pose to count as tracked."""
     iterations: int = 200
     """RANSAC iterations."""
