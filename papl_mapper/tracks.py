@@ -8,12 +8,12 @@ one row per observation, so mapping never touches images.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 
+from papl_mapper.atomic import atomic_path
 from papl_mapper.map import Camera
 
 
@@ -81,9 +81,8 @@ class Tracks:
         """Write to one .npz (camera as JSON) under a temporary name, then rename."""
         path = Path(path)
         arrays = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "camera"}
-        tmp = path.with_name(f".{path.name}.tmp.npz")
-        np.savez(tmp, camera=np.array(json.dumps(self.camera.to_dict())), **arrays)
-        os.replace(tmp, path)
+        with atomic_path(path, suffix=".npz") as tmp:
+            np.savez(tmp, camera=np.array(json.dumps(self.camera.to_dict())), **arrays)
         return path
 
     @classmethod

@@ -24,6 +24,7 @@ import numpy as np
 from papl_mapper.pipelines.config import RunConfig
 
 from papl_mapper import __version__
+from papl_mapper.atomic import atomic_path
 from papl_mapper.backend import global_ba, local_ba
 from papl_mapper.config import config_to_dict, dump_toml
 from papl_mapper.errors import GeometryError, OptimizationError
@@ -197,8 +198,7 @@ def map_tracks(
     def refine(reg: Registration) -> None:
         """Windowed BA over the newest keyframes; the older ones that share points hold still."""
         T_wc = {f: np.linalg.inv(reg.T_cw[f]) for f in reg.frames}
-        empty = LineEstimates(np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros(0, bool), np.zeros(0))
-        m = assemble_map(tracks, T_wc, reg.points_w, empty)
+        m = assemble_map(tracks, T_wc, reg.points_w, LineEstimates.empty())
         cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views)
         frames = sorted(reg.frames)
         # the two oldest keyframes stay fixed: with the shared points they hold the gauge and scale
@@ -218,8 +218,7 @@ def map_tracks(
         reg = register_keyframes(tracks, cfg.mapping, cb, refine if cfg.local_ba_every > 0 else None)
     T_wc = {f: np.linalg.inv(T) for f, T in reg.T_cw.items()}
     stats: dict[str, Any] = {"frames_unregistered": len(reg.lost), "keyframes_registered": len(reg.frames)}
-    empty = LineEstimates(np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros(0, bool), np.zeros(0))
-    m = assemble_map(tracks, T_wc, reg.points_w, empty)
+    m = assemble_map(tracks, T_wc, reg.points_w, LineEstimates.empty())
     with timer.stage("ba_points"):
         m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points)")
     up = vertical_in_world(tracks, _poses(m))
@@ -409,9 +408,8 @@ def _write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary:
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def _json_default(o: Any) -> Any:

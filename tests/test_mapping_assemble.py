@@ -87,7 +87,7 @@ def test_vertical_and_transform_keep_projections():
     up = vertical_in_world(tr, T)
     assert np.allclose(up, R_wc @ [0, -1, 0])
     pts = {0: np.array([1.0, 2.0, 3.0])}
-    lines = LineEstimates(np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros(0, bool), np.zeros(0))
+    lines = LineEstimates.empty()
     m = assemble_map(tr, T, pts, lines)
     before = np.linalg.inv(m.keyframes.T_wc[1]) @ np.r_[m.points.xyz[0], 1]
     R = rotation_to_z(up)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from papl_mapper.map import Camera
-from papl_mapper.mapping.incremental import register_keyframes, triangulate_multiview
+from papl_mapper.mapping.incremental import register_keyframes
 from papl_mapper.tracks import Tracks
 
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
@@ -71,18 +71,6 @@ def _umeyama_sim3(src, dst):
     R = U @ E @ Vt
     s = np.trace(np.diag(sig) @ E) / S.var(0).sum()
     return s, R, mu_d - s * R @ mu_s
-
-
-def test_triangulate_multiview_exact():
-    rng = np.random.default_rng(0)
-    T = np.stack([_look_T_cw(np.array([x, 0, 0]), 0.1) for x in (0, 0.5, 1.0)])
-    X = np.array([6.0, 1.0, 0.5])
-    uv = np.stack([(CAM.K @ (Ti[:3, :3] @ X + Ti[:3, 3]))[:2] / (Ti[:3, :3] @ X + Ti[:3, 3])[2] for Ti in T])
-    Xh, err, angle = triangulate_multiview(T, uv + rng.normal(0, 1e-9, uv.shape), CAM.K)
-    np.testing.assert_allclose(Xh, X, atol=1e-6)
-    a, b = X - np.array([0, 0, 0]), X - np.array([1.0, 0, 0])
-    expected = np.degrees(np.arccos(a @ b / np.linalg.norm(a) / np.linalg.norm(b)))
-    assert err.max() < 1e-5 and angle == pytest.approx(expected, abs=1e-6)
 
 
 @pytest.mark.parametrize("noise_px", [0.0, 0.5])

@@ -224,10 +224,7 @@ def cull_observations(
         ln.obs_ids, ln.obs_xy = ln.obs_ids[ok], ln.obs_xy[ok]
     keep = _views(ln.ids, ln.obs_ids) >= min_line_views
     counts["lines"] = int((~keep).sum())
-    for name in ("ids", "endpoints_w", "axis_weights", "state", "ref_keyframe_id", "inverse_depth"):
-        setattr(ln, name, getattr(ln, name)[keep])
-    sel = np.isin(ln.obs_ids[:, 0], ln.ids)
-    ln.obs_ids, ln.obs_xy = ln.obs_ids[sel], ln.obs_xy[sel]
+    _keep_lines(ln, keep)
     # an anchored line's reference keyframe must still observe it
     if len(ln):
         seen = set(map(tuple, ln.obs_ids.tolist()))
@@ -259,11 +256,16 @@ def drop_stray_lines(m: Map, margin: float = 0.2, percentile: float = 1.0) -> in
     ends = ln.endpoints_w.reshape(-1, 6)
     inside = (ends >= np.tile(lo - grow, 2)) & (ends <= np.tile(hi + grow, 2))
     keep = inside.all(axis=1)
+    _keep_lines(ln, keep)
+    return int((~keep).sum())
+
+
+def _keep_lines(ln: Lines, keep: np.ndarray) -> None:
+    """Keep the lines where `keep` (M,) is True, with their observations (in place)."""
     for name in ("ids", "endpoints_w", "axis_weights", "state", "ref_keyframe_id", "inverse_depth"):
         setattr(ln, name, getattr(ln, name)[keep])
     sel = np.isin(ln.obs_ids[:, 0], ln.ids)
     ln.obs_ids, ln.obs_xy = ln.obs_ids[sel], ln.obs_xy[sel]
-    return int((~keep).sum())
 
 
 def set_line_states(m: Map) -> None:

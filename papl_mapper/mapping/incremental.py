@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from papl_mapper.errors import InputError, PaplError
+from papl_mapper.eval.trajectory import Sim3, umeyama
 from papl_mapper.geometry.se3 import invert
 from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
@@ -86,25 +88,6 @@ def _common(tracks: Tracks, f1: int, f2: int) -> tuple[np.ndarray, np.ndarray, n
     id2, uv2 = tracks.points_in(f2)
     common, i1, i2 = np.intersect1d(id1, id2, assume_unique=True, return_indices=True)
     return common, uv1[i1], uv2[i2]
-
-
-def triangulate_multiview(
-    T_cw: np.ndarray, uv: np.ndarray, K: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """DLT triangulation of one point from V views: poses (V,4,4), pixels (V,2) -> point, errors, angle."""
-    P = K @ T_cw[:, :3, :]  # (V, 3, 4)
-    A = np.concatenate([uv[:, :1] * P[:, 2] - P[:, 0], uv[:, 1:] * P[:, 2] - P[:, 1]])  # (2V, 4)
-    X = np.linalg.svd(A)[2][-1]
-    X = X[:3] / X[3] if abs(X[3]) > 1e-12 else np.full(3, np.nan)
-    Xc = np.einsum("vij,j->vi", T_cw[:, :3, :3], X) + T_cw[:, :3, 3]  # (V, 3)
-    proj = Xc @ K.T
-    err = np.linalg.norm(proj[:, :2] / proj[:, 2:3] - uv, axis=1)
-    err[Xc[:, 2] <= 0] = np.inf
-    centres = -np.einsum("vji,vj->vi", T_cw[:, :3, :3], T_cw[:, :3, 3])  # (V, 3)
-    rays = X - centres
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    max_angle = np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1.0, 1.0)))
-    return X, err, max_angle
 
 
 def _triangulate_new(tracks: Tracks, reg: Registration, frame: int, cfg: IncrementalConfig) -> int:
@@ -209,8 +192,6 @@ def register_keyframes(
         segments.append(reg)
         start = end + 1
     if not segments:
-        from papl_mapper.errors import InputError
-
         raise InputError(
             f"could not initialise from {len(keyframes)} keyframes: too little parallax or too few "
             "tracked points; try a recording with sideways or forward motion, or a lower --step"
@@ -311,9 +292,6 @@ def _matched_tracks(tracks: Tracks, a: set[int], b: set[int], ratio: float) -> l
 def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, tracks: Tracks) -> Registration:
     """Chain the segments into the largest one that can take them: a Sim(3) on the points they share,
     by track id or by matching keyframe ORB descriptors (a revisit of a mapped place)."""
-    from papl_mapper.errors import PaplError
-    from papl_mapper.eval.trajectory import umeyama
-
     base = max(segments, key=lambda r: len(r.frames))
     for seg in segments:
         if seg is base:
@@ -331,7 +309,7 @@ def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, tracks
             x = np.array([seg.points_w[tb] for tb, _ in common])
             y = np.array([base.points_w[ta] for _, ta in common])
             try:
-                sim = _robust_sim3(x, y, umeyama, cfg)
+                sim = _robust_sim3(x, y, cfg)
             except PaplError as exc:
                 log.debug("segment merge: %s", exc)
         if sim is None:
@@ -364,7 +342,7 @@ def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, tracks
     return base
 
 
-def _robust_sim3(x: np.ndarray, y: np.ndarray, umeyama: Callable, cfg: IncrementalConfig):
+def _robust_sim3(x: np.ndarray, y: np.ndarray, cfg: IncrementalConfig) -> Sim3 | None:
     """Sim(3) y ~ s R x + t by RANSAC over 3-point samples, refit on the inliers; None if too few agree."""
     rng = np.random.default_rng(0)
     scale = np.median(np.linalg.norm(y - np.median(y, axis=0), axis=1))
@@ -374,7 +352,7 @@ def _robust_sim3(x: np.ndarray, y: np.ndarray, umeyama: Callable, cfg: Increment
         idx = rng.choice(len(x), 3, replace=False)
         try:
             sim = umeyama(x[idx], y[idx])
-        except Exception:  # noqa: BLE001 - degenerate samples (collinear, coincident) are skipped
+        except PaplError:  # degenerate samples (collinear, coincident points) are skipped
             continue
         inl = np.linalg.norm(sim.scale * x @ sim.R.T + sim.t - y, axis=1) < tol
         if inl.sum() > best.sum():

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from papl_mapper.geometry.lines import endpoint_errors, plucker_from_point_dir, plucker_to_camera
 from papl_mapper.geometry.triangulation import observation_planes
 
 log = logging.getLogger(__name__)
@@ -44,6 +45,10 @@ class LineEstimates:
     endpoints_w: np.ndarray  # (M, 2, 3)
     from_vp: np.ndarray  # (M,) bool, direction fixed by the vanishing direction
     rms_px: np.ndarray  # (M,) endpoint-to-line reprojection RMS
+
+    @classmethod
+    def empty(cls) -> LineEstimates:
+        return cls(np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros(0, bool), np.zeros(0))
 
 
 def line_through_planes(
@@ -94,17 +99,8 @@ def reprojection_rms(
     p: np.ndarray, d: np.ndarray, T_wc: np.ndarray, xy: np.ndarray, K: np.ndarray
 ) -> np.ndarray:
     """Per-view RMS distance (px) of the observed endpoints to the projected infinite line."""
-    R_cw = np.transpose(T_wc[:, :3, :3], (0, 2, 1))
-    t_cw = -np.einsum("nij,nj->ni", R_cw, T_wc[:, :3, 3])
-    a = np.einsum("nij,j->ni", R_cw, p) + t_cw  # a point of the line, camera frame
-    b = a + np.einsum("nij,j->ni", R_cw, d)
-    la = a @ K.T
-    lb = b @ K.T
-    ell = np.cross(la, lb)  # image line (homogeneous)
-    ell /= np.linalg.norm(ell[:, :2], axis=1, keepdims=True)
-    e1 = np.einsum("ni,ni->n", ell, np.column_stack([xy[:, :2], np.ones(len(xy))]))
-    e2 = np.einsum("ni,ni->n", ell, np.column_stack([xy[:, 2:], np.ones(len(xy))]))
-    return np.sqrt(0.5 * (e1**2 + e2**2))
+    L_c = plucker_to_camera(plucker_from_point_dir(p, d), T_wc)
+    return np.sqrt(np.mean(endpoint_errors(K, L_c, xy) ** 2, axis=1))
 
 
 def endpoint_extent(
