@@ -70,6 +70,9 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     handler = logging.FileHandler(args.out / "log.txt", mode="a" if args.resume else "w")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    # the file keeps the whole story (INFO) even when the terminal is quiet
+    handler.setLevel(min(log.getEffectiveLevel(), logging.INFO))
+    log.setLevel(handler.level)
     log.addHandler(handler)
     try:
         result = run_pipeline(

@@ -25,14 +25,38 @@ class FlowConfig:
     """LK iterations per level."""
     epsilon: float = 0.03
     """LK convergence threshold in pixels."""
+    predict: bool = True
+    """Start LK from the image motion of the previous frame pair (a homography fitted to its flow),
+    so fast turns, whose flow exceeds what the pyramid can find from zero, keep their tracks."""
+
+
+def predict_flow(flow_from: np.ndarray, flow_to: np.ndarray) -> np.ndarray | None:
+    """Homography (3, 3) of the image motion seen in one frame pair's flow; None when too little flow.
+
+    Fitted with RANSAC so moving objects and parallax outliers do not bend it.
+    """
+    if len(flow_from) < 12:
+        return None
+    H, inl = cv2.findHomography(flow_from, flow_to, cv2.RANSAC, 3.0)
+    if H is None or inl is None or inl.sum() < 0.5 * len(flow_from):
+        return None
+    return H
 
 
 def track_klt(
-    prev: np.ndarray, cur: np.ndarray, uv: np.ndarray, config: FlowConfig, width: int, height: int
+    prev: np.ndarray,
+    cur: np.ndarray,
+    uv: np.ndarray,
+    config: FlowConfig,
+    width: int,
+    height: int,
+    motion: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Track (N, 2) pixels from gray image prev to cur: new pixels (N, 2) float32, kept mask (N,).
 
-    Kept: found forward and backward, the round trip within fb_threshold_px, inside the image.
+    `motion` (a homography of the expected image motion) seeds LK forward; the backward pass starts
+    from the original pixels. Kept: found forward and backward, the round trip within
+    fb_threshold_px, inside the image.
     """
     n = len(uv)
     if n == 0:
@@ -41,8 +65,15 @@ def track_klt(
     level = config.levels
     win = (config.win_size, config.win_size)
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.max_iterations, config.epsilon)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, winSize=win, maxLevel=level, criteria=crit)
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, winSize=win, maxLevel=level, criteria=crit)
+    lk = {"winSize": win, "maxLevel": level, "criteria": crit}
+    if motion is not None and config.predict:
+        guess = cv2.perspectiveTransform(p0, motion).astype(np.float32)
+        seeded = {**lk, "flags": cv2.OPTFLOW_USE_INITIAL_FLOW}
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, guess, **seeded)
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), **seeded)
+    else:
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **lk)
     p1 = p1.reshape(-1, 2)
     fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= config.fb_threshold_px)

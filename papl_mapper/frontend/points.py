@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from papl_mapper.frontend.descriptors import hamming_pairs
-from papl_mapper.frontend.klt import FlowConfig, track_klt
+from papl_mapper.frontend.klt import FlowConfig, predict_flow, track_klt
 
 log = logging.getLogger(__name__)
 
@@ -81,9 +81,10 @@ class PointTracker:
     def step(self, gray: np.ndarray, prev: np.ndarray | None, force_detect: bool = False) -> None:
         """Follow live tracks from gray image prev to gray; replenish corners where sparse."""
         self.frame += 1
+        motion = predict_flow(self.flow_from, self.flow_to) if self.flow.predict else None
         self.flow_from = self.flow_to = np.zeros((0, 2), np.float32)
         if prev is not None and len(self.ids):
-            new_uv, ok = track_klt(prev, gray, self.uv, self.flow, self.width, self.height)
+            new_uv, ok = track_klt(prev, gray, self.uv, self.flow, self.width, self.height, motion)
             self._forget(self.ids[~ok])
             self.flow_from, self.flow_to = self.uv[ok], new_uv[ok]
             self.ids, self.uv = self.ids[ok], new_uv[ok]

@@ -36,6 +36,11 @@ class IncrementalConfig:
     """How many keyframes after the first one to try as the initialisation partner."""
     min_parallax_deg: float = 2.0
     """Smallest ray angle for triangulating a new point."""
+    starved_parallax_deg: float = 0.5
+    """Smallest ray angle when the frame sees fewer than `starved_below` mapped points: in a fast
+    turn new points leave the view before they gain 2 degrees, and far ones still fix rotation."""
+    starved_below: int = 120
+    """Mapped points seen by a keyframe under which the map counts as starved."""
     max_reprojection_px: float = 3.0
     """Largest reprojection error of a newly triangulated point in the views that made it."""
     mature_parallax_deg: float = 8.0
@@ -99,6 +104,8 @@ def _triangulate_new(tracks: Tracks, reg: Registration, frame: int, cfg: Increme
     """
     K = tracks.camera.K
     ids, _ = tracks.points_in(frame)
+    known = sum(t in reg.points_w for t in ids.tolist())
+    min_parallax = cfg.starved_parallax_deg if known < cfg.starved_below else cfg.min_parallax_deg
     ids = np.array(
         [t for t in ids.tolist() if reg.point_angle.get(t, 0.0) < cfg.mature_parallax_deg], np.int64
     )
@@ -108,7 +115,7 @@ def _triangulate_new(tracks: Tracks, reg: Registration, frame: int, cfg: Increme
     obs_track, obs_frame, uv = tracks.point_track[sel], tracks.point_frame[sel], tracks.point_uv[sel]
     uniq, point_index = np.unique(obs_track, return_inverse=True)
     T_cw = np.stack([reg.T_cw[int(f)] for f in obs_frame])
-    X, ok = triangulate_points(point_index, invert(T_cw), K, uv, len(uniq), cfg.min_parallax_deg)
+    X, ok = triangulate_points(point_index, invert(T_cw), K, uv, len(uniq), min_parallax)
     Xc = np.einsum("kij,kj->ki", T_cw[:, :3, :3], X[point_index]) + T_cw[:, :3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         proj = Xc @ K.T
@@ -116,7 +123,7 @@ def _triangulate_new(tracks: Tracks, reg: Registration, frame: int, cfg: Increme
     max_err = np.zeros(len(uniq))
     np.maximum.at(max_err, point_index, err)
     angle = _ray_angle_deg(point_index, invert(T_cw)[:, :3, 3], X, len(uniq))
-    ok &= (max_err < cfg.max_reprojection_px) & (angle >= cfg.min_parallax_deg)
+    ok &= (max_err < cfg.max_reprojection_px) & (angle >= min_parallax)
     added = 0
     for i in np.flatnonzero(ok):
         tid = int(uniq[i])
