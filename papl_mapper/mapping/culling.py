@@ -55,8 +55,10 @@ class CullConfig:
             raise ConfigError(f"cull.min_other_views {self.min_other_views} must be at least 1")
         if self.scale_factor < 1.0:
             raise ConfigError(f"cull.scale_factor {self.scale_factor} must be at least 1")
-        if self.min_line_views < 0 or self.line_min_frames < 0 or self.min_shared_points < 0 or self.max_gap_frames < 0:
-            raise ConfigError("cull.min_line_views, min_shared_points and max_gap_frames must be >= 0")
+        counts = ("min_line_views", "line_min_frames", "min_shared_points", "max_gap_frames")
+        bad = [f"cull.{k} {getattr(self, k)}" for k in counts if getattr(self, k) < 0]
+        if bad:
+            raise ConfigError(f"{', '.join(bad)}: must be 0 or more")
 
 
 @dataclass
@@ -194,9 +196,7 @@ def cull_keyframes(
             reason = "lines"
         elif cfg.max_gap_frames and frames[nxt] - frames[prev] > cfg.max_gap_frames:
             reason = "gap"
-        elif (
-            len(np.intersect1d(kf_points[prev], kf_points[nxt], assume_unique=True)) < cfg.min_shared_points
-        ):
+        elif len(np.intersect1d(kf_points[prev], kf_points[nxt], assume_unique=True)) < cfg.min_shared_points:
             reason = "shared_points"
         if reason:
             kept_for[reason] = kept_for.get(reason, 0) + 1
