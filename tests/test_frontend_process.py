@@ -201,3 +201,17 @@ def test_presets_and_segments_at_reduced_size(video):
         _, xy, _ = tracks.lines_in(f)
         on_gt.append(segment_match(xy, gts[tracks.frame_index[f]][0], dist_px=4.0) >= 0)
     assert np.mean(np.concatenate(on_gt)) > 0.5  # endpoints mapped back to full-resolution pixels
+
+
+def test_threaded_stages_give_the_same_tracks(video, result):
+    """Vanishing points in a worker thread (the default) and segments in one (parallel) change nothing."""
+    path, cam, _, _ = video
+    threaded, _, stats = result
+    assert FrontendConfig().vp_thread
+    assert set(stats.cpu_seconds) == set(stats.seconds) and stats.cpu_seconds["vp"] > 0
+    for cfg in (FrontendConfig(vp_thread=False), FrontendConfig(parallel=True)):
+        other = process(open_recording(path), cam, cfg)
+        for f in dataclasses.fields(Tracks):
+            a, b = getattr(threaded, f.name), getattr(other, f.name)
+            if isinstance(a, np.ndarray):
+                np.testing.assert_array_equal(a, b, err_msg=f.name)

@@ -296,39 +296,46 @@ def predict_segments(segs: np.ndarray, flow_from: np.ndarray, flow_to: np.ndarra
 
 
 def match_predicted(pred: np.ndarray, det: np.ndarray, config: LineConfig) -> np.ndarray:
-    """One-to-one matches (M, 2) of predicted segments to detections by the tracking gates."""
+    """One-to-one matches (M, 2) of predicted segments to detections by the tracking gates.
+
+    The distance and overlap gates are evaluated only on the pairs that pass the angle gate and whose
+    midpoints are close enough to overlap (a few percent of all pairs), not on the full (P, D) grid.
+    """
     if len(pred) == 0 or len(det) == 0:
         return np.zeros((0, 2), np.int64)
     dp = pred[:, 2:] - pred[:, :2]
     lp = np.maximum(np.linalg.norm(dp, axis=1), 1e-9)
     up = dp / lp[:, None]
-    np_ = np.stack([-up[:, 1], up[:, 0]], axis=1)
     dd = det[:, 2:] - det[:, :2]
     ld = np.maximum(np.linalg.norm(dd, axis=1), 1e-9)
     ud = dd / ld[:, None]
     cos = up @ ud.T  # (P, D), polarity-aware
-    # distance of detected endpoints to the predicted line
-    r1 = det[None, :, :2] - pred[:, None, :2]
-    r2 = det[None, :, 2:] - pred[:, None, :2]
-    e1 = np.abs(np.einsum("pdk,pk->pd", r1, np_))
-    e2 = np.abs(np.einsum("pdk,pk->pd", r2, np_))
-    dist = 0.5 * (e1 + e2)
-    t1 = np.einsum("pdk,pk->pd", r1, up)
-    t2 = np.einsum("pdk,pk->pd", r2, up)
-    lo = np.clip(np.minimum(t1, t2), 0, lp[:, None])
-    hi = np.clip(np.maximum(t1, t2), 0, lp[:, None])
-    overlap = (hi - lo) / np.minimum(lp[:, None], ld[None, :])
-    ok = (
-        (cos >= np.cos(np.radians(config.match_angle_deg)))
-        & (dist <= config.match_distance_px)
-        & (overlap >= config.min_overlap)
-    )
+    # overlapping segments have midpoints within half their summed lengths (plus the line distance)
+    mid_p = (pred[:, :2] + pred[:, 2:]) / 2
+    mid_d = (det[:, :2] + det[:, 2:]) / 2
+    reach = 0.5 * (lp[:, None] + ld[None, :]) + config.match_distance_px
+    gap2 = np.square(mid_p[:, None, 0] - mid_d[None, :, 0]) + np.square(mid_p[:, None, 1] - mid_d[None, :, 1])
+    pi, di = np.nonzero((cos >= np.cos(np.radians(config.match_angle_deg))) & (gap2 <= reach * reach))
+    if len(pi) == 0:
+        return np.zeros((0, 2), np.int64)
+    c = cos[pi, di]
+    p1, u, n = pred[pi, :2], up[pi], np.stack([-up[pi, 1], up[pi, 0]], axis=1)
+    r1 = det[di, :2] - p1  # (C, 2) detected endpoints relative to the predicted start
+    r2 = det[di, 2:] - p1
+    # mean distance of the detected endpoints to the predicted line
+    dist = 0.5 * (np.abs(np.sum(r1 * n, axis=1)) + np.abs(np.sum(r2 * n, axis=1)))
+    t1 = np.sum(r1 * u, axis=1)
+    t2 = np.sum(r2 * u, axis=1)
+    lo = np.clip(np.minimum(t1, t2), 0, lp[pi])
+    hi = np.clip(np.maximum(t1, t2), 0, lp[pi])
+    overlap = (hi - lo) / np.minimum(lp[pi], ld[di])
+    ok = (dist <= config.match_distance_px) & (overlap >= config.min_overlap)
     if not ok.any():
         return np.zeros((0, 2), np.int64)
-    angle = np.degrees(np.arccos(np.clip(cos, -1, 1)))
-    cost = dist + 0.5 * angle + 2.0 * (1.0 - np.minimum(overlap, 1.0))
-    pi, di = np.nonzero(ok)
-    order = np.argsort(cost[pi, di], kind="stable")
+    pi, di = pi[ok], di[ok]
+    angle = np.degrees(np.arccos(np.clip(c[ok], -1, 1)))
+    cost = dist[ok] + 0.5 * angle + 2.0 * (1.0 - np.minimum(overlap[ok], 1.0))
+    order = np.argsort(cost, kind="stable")
     used_p, used_d, out = set(), set(), []
     for a, b in zip(pi[order].tolist(), di[order].tolist(), strict=True):
         if a in used_p or b in used_d:

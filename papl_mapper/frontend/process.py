@@ -1,9 +1,9 @@
 """The frontend: one recording -> `Tracks` (undistorted observations with persistent track ids).
 
 Per frame: KLT point tracks, segments (EDLines/LSD) with their tracks, keyframe choice, and on
-keyframes ORB/LBD descriptors with re-association of lost tracks. Vanishing directions run
-afterwards on the stored segments of all frames: the vertical is initialised from the first
-frames, then tracked while each frame gets its Atlanta directions and structural labels.
+keyframes ORB/LBD descriptors with re-association of lost tracks. Vanishing directions follow
+frame by frame (in a worker thread, overlapping the next frames' work): the vertical is initialised
+from the first frames, then tracked while each frame gets its Atlanta directions and structural labels.
 Frames without texture (near-uniform) are skipped; their indices are in `Tracks.skipped_frames`.
 """
 
@@ -12,28 +12,23 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from papl_mapper.errors import GeometryError, InputError
+from papl_mapper.errors import InputError
 from papl_mapper.frontend.camera import Undistorter, fit_camera
 from papl_mapper.frontend.keyframes import KeyframeConfig, KeyframeSelector
 from papl_mapper.frontend.klt import FlowConfig
 from papl_mapper.frontend.lines import LBD, LineConfig, LineTracker, SegmentDetector
-from papl_mapper.frontend.motion import common_points, rotation_from_bearings
 from papl_mapper.frontend.points import PointConfig, PointTracker
-from papl_mapper.frontend.vanishing import (
-    VPConfig,
-    classify_segments,
-    estimate_frame,
-    estimate_vertical,
-    update_vertical,
-)
+from papl_mapper.frontend.vanishing import VPConfig
 from papl_mapper.frontend.video import Frame, Recording
+from papl_mapper.frontend.vp_tracking import VanishingTracker, VPTrackingConfig
 from papl_mapper.map import Camera
 from papl_mapper.tracks import Tracks
 
@@ -41,7 +36,9 @@ log = logging.getLogger(__name__)
 
 ProgressCallback = Callable[[int, int, str], None]
 # seconds per step; with parallel=True "lines" runs in a worker thread during "points" and
-# "lines_wait" is the main thread waiting for it; "decode" is waiting for the decoder thread
+# "lines_wait" is the main thread waiting for it; "decode" is waiting for the decoder thread;
+# with vp_thread=True "vp" runs in a worker thread beside the next frames and "vp_wait" is the main
+# thread waiting for it after the last frame
 STEPS = (
     "decode",
     "convert",
@@ -53,6 +50,7 @@ STEPS = (
     "descriptors",
     "undistort",
     "vp",
+    "vp_wait",
 )
 
 
@@ -97,9 +95,11 @@ class FrontendConfig:
     parallel: bool = False
     """Detect segments in a worker thread while points are tracked. Off by default: on the 2-core
     benchmark machine under load it was slower than sequential (OpenCV already uses its own threads)."""
+    vp_thread: bool = True
+    """Estimate vanishing directions in a worker thread as frames arrive, overlapping the next
+    frames' work (numpy and OpenCV release the GIL for much of it); False: in the main thread after
+    each frame. The results are the same."""
 
-
-MIN_ROTATION_POINTS = 15  # common point tracks needed to carry the vertical to the next frame
 
 PRESETS = {
     "accurate": {},
@@ -120,6 +120,8 @@ class FrontendStats:
     """What a run measured: seconds per step, counts; filled when passed to `process`."""
 
     seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STEPS, 0.0))
+    cpu_seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STEPS, 0.0))
+    """CPU seconds per step of the thread running it (OpenCV's own worker threads not included)."""
     frames: int = 0
     skipped: int = 0
     keyframes: int = 0
@@ -153,31 +155,58 @@ def process(
     stats = stats if stats is not None else FrontendStats()
     wall0 = time.perf_counter()
     camera = fit_camera(camera, recording.width, recording.height, name=f"camera for {recording.path}")
-    run = _Run(recording, camera, config, stats)
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="segments") if config.parallel else None
+    vp_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vanishing") if config.vp_thread else None
+    run = _Run(recording, camera, config, stats, vp_pool)
     try:
         for done, frame in enumerate(recording, 1):
             message = run.frame(frame, pool)
             if progress:
                 progress(done, run.total, message)
+        tracks = run.finish()
     finally:
-        if pool is not None:
-            pool.shutdown(wait=True)
-    tracks = run.finish()
+        for p in (pool, vp_pool):
+            if p is not None:
+                p.shutdown(wait=True, cancel_futures=True)
     stats.wall_seconds = time.perf_counter() - wall0
     return tracks
 
 
 def _timed(fn: Callable, *args: object) -> tuple:
-    t0 = time.perf_counter()
+    """fn(*args), its wall seconds and the CPU seconds of the calling thread."""
+    t0, c0 = time.perf_counter(), time.thread_time()
     out = fn(*args)
-    return out, time.perf_counter() - t0
+    return out, time.perf_counter() - t0, time.thread_time() - c0
+
+
+class _Clock:
+    """Adds the wall and (calling thread's) CPU seconds since the last lap to a step of the stats."""
+
+    def __init__(self, stats: FrontendStats):
+        self.stats = stats
+        self.restart()
+
+    def restart(self) -> None:
+        self.wall, self.cpu = time.perf_counter(), time.thread_time()
+
+    def lap(self, step: str) -> None:
+        wall, cpu = time.perf_counter(), time.thread_time()
+        self.stats.seconds[step] += wall - self.wall
+        self.stats.cpu_seconds[step] += cpu - self.cpu
+        self.wall, self.cpu = wall, cpu
 
 
 class _Run:
     """State of one `process` call: the trackers and the growing observation lists."""
 
-    def __init__(self, recording: Recording, camera: Camera, config: FrontendConfig, stats: FrontendStats):
+    def __init__(
+        self,
+        recording: Recording,
+        camera: Camera,
+        config: FrontendConfig,
+        stats: FrontendStats,
+        vp_pool: ThreadPoolExecutor | None = None,
+    ):
         w, h = recording.width, recording.height
         self.recording, self.config, self.stats = recording, config, stats
         self.und = Undistorter(camera)
@@ -201,7 +230,25 @@ class _Run:
         self.l_frame, self.l_track, self.l_xy = [], [], []
         self.pd_row, self.pd_desc, self.ld_row, self.ld_desc = [], [], [], []
         self.n_points = self.n_lines = 0
-        self._t_last = time.perf_counter()
+        self.vp = VanishingTracker(
+            self.und.undistorted_camera.K,
+            VPTrackingConfig(
+                config.vp, config.vertical_init_frames, config.vp_stride, config.report_tracked_vertical
+            ),
+        )
+        self.vp_pool = vp_pool
+        self.vp_jobs: deque[Future] = deque()
+        self._clock = _Clock(stats)
+
+    def _vp_add(self, segs: np.ndarray, ids: np.ndarray, uv: np.ndarray, kf: bool) -> None:
+        _, wall, cpu = _timed(self.vp.add, segs, ids, uv, kf)
+        self.stats.seconds["vp"] += wall
+        self.stats.cpu_seconds["vp"] += cpu
+
+    def _vp_collect(self, wait: bool) -> None:
+        """Drop finished VP jobs (re-raising their errors); all of them when wait."""
+        while self.vp_jobs and (wait or self.vp_jobs[0].done()):
+            self.vp_jobs.popleft().result()
 
     def _segments(self, gray: np.ndarray) -> np.ndarray:
         """Segments (S, 4) in full-resolution pixels, detected at segments_max_size if set."""
@@ -221,45 +268,43 @@ class _Run:
 
     def frame(self, frame: Frame, pool: ThreadPoolExecutor | None) -> str:
         """Process one decoded frame; returns a progress message."""
-        sec = self.stats.seconds
-        t1 = time.perf_counter()
-        sec["decode"] += t1 - self._t_last  # waiting for the decoder thread
+        clock = self._clock
+        clock.lap("decode")  # waiting for the decoder thread
         self.done += 1
         gray = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
         small = gray
         if self.work_size != (gray.shape[1], gray.shape[0]):
             small = cv2.resize(gray, self.work_size, interpolation=cv2.INTER_AREA)
-        t2 = time.perf_counter()
-        sec["convert"] += t2 - t1
+        clock.lap("convert")
         if _is_textureless(gray, self.config.min_texture_std):
             self.skipped.append(frame.index)
             self.prev_gray = self.prev_small = None
-            self._t_last = time.perf_counter()
+            clock.lap("convert")
             return f"frame {frame.index}: skipped (no texture)"
         points, lines = self.points, self.lines
         restart = self.prev_gray is None
         pending = pool.submit(_timed, self._segments, gray) if pool is not None else None
         points.step(small, self.prev_small, force_detect=restart)
         uv = self._to_full(points.uv)
-        t4 = time.perf_counter()
-        sec["points"] += t4 - t2
-        segs, line_seconds = pending.result() if pending is not None else _timed(self._segments, gray)
-        t5 = time.perf_counter()
-        sec["lines"] += line_seconds
+        clock.lap("points")
+        timed = pending.result() if pending is not None else _timed(self._segments, gray)
+        segs, line_seconds, line_cpu = timed
         if pending is not None:
-            sec["lines_wait"] += t5 - t4
+            clock.lap("lines_wait")
+        else:
+            clock.restart()
+        self.stats.seconds["lines"] += line_seconds
+        self.stats.cpu_seconds["lines"] += line_cpu
         if restart:
             lines.step(segs, None, None)
         else:
             lines.step(segs, self._to_full(points.flow_from), self._to_full(points.flow_to))
-        t6 = time.perf_counter()
-        sec["line_tracking"] += t6 - t5
+        clock.lap("line_tracking")
         kf = self.selector.update(points.ids, points.uv, force=restart)
         if kf:
             reasons = self.stats.keyframe_reasons
             reasons[self.selector.last_reason] = reasons.get(self.selector.last_reason, 0) + 1
-        t7 = time.perf_counter()
-        sec["keyframes"] += t7 - t6
+        clock.lap("keyframes")
         row = len(self.frame_index)
         if kf:
             pids, pdesc = points.keyframe(small)
@@ -270,8 +315,7 @@ class _Run:
             self.pd_desc.append(pdesc)
             self.ld_row.append(self.n_lines + _positions(lines.ids, lids))
             self.ld_desc.append(ldesc)
-        t8 = time.perf_counter()
-        sec["descriptors"] += t8 - t7
+        clock.lap("descriptors")
         self.frame_index.append(frame.index)
         self.timestamps.append(frame.timestamp_s)
         self.is_kf.append(kf)
@@ -285,12 +329,19 @@ class _Run:
         self.n_points += k
         self.n_lines += s
         self.prev_gray, self.prev_small = gray, small
-        self._t_last = time.perf_counter()
-        sec["undistort"] += self._t_last - t8
+        clock.lap("undistort")
+        if self.config.vanishing:
+            job = (self.l_xy[-1], self.p_track[-1], self.p_uv[-1], kf)
+            if self.vp_pool is not None:
+                self.vp_jobs.append(self.vp_pool.submit(self._vp_add, *job))
+                self._vp_collect(wait=False)
+            else:
+                self._vp_add(*job)
+        clock.restart()
         return f"frame {frame.index}: {k} points, {s} segments{', keyframe' if kf else ''}"
 
     def finish(self) -> Tracks:
-        """Vanishing directions over all frames, then the Tracks."""
+        """The Tracks, once the vanishing directions of all frames are in."""
         rec, stats = self.recording, self.stats
         if rec.stopped_early:
             log.warning("%s: decoding stopped early: %s", rec.path, rec.stop_message)
@@ -305,11 +356,18 @@ class _Run:
         is_kf = np.array(self.is_kf, bool)
         line_frame = np.concatenate(self.l_frame)
         line_xy = np.concatenate(self.l_xy).reshape(-1, 4)
-        K = self.und.undistorted_camera.K
-        t0 = time.perf_counter()
-        pts = (np.concatenate(self.p_frame), np.concatenate(self.p_track), np.concatenate(self.p_uv))
-        line_vp, vp_dirs, vertical_vp = _vanishing(line_frame, line_xy, pts, is_kf, K, self.config, stats)
-        stats.seconds["vp"] += time.perf_counter() - t0
+        self._clock.restart()
+        self._vp_collect(wait=True)
+        if self.config.vanishing:
+            labels, vp_dirs, vertical_vp = self.vp.result()
+            line_vp = _cat(labels, np.int64, (0,))
+            stats.vertical_source = self.vp.vertical_source
+            stats.vp_failures, stats.vertical_rotations = self.vp.failures, self.vp.rotations
+        else:
+            stats.vertical_source = "off"
+            line_vp = np.full(len(line_frame), -1, np.int64)
+            vp_dirs, vertical_vp = np.full((F, 3, 3), np.nan), np.full(F, -1, np.int64)
+        self._clock.lap("vp_wait")
         tracks = Tracks(
             camera=self.und.undistorted_camera,
             frame_index=np.array(self.frame_index, np.int64),
@@ -356,123 +414,3 @@ def _positions(all_ids: np.ndarray, some: np.ndarray) -> np.ndarray:
 
 def _cat(parts: list[np.ndarray], dtype: type, empty_shape: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(parts).astype(dtype) if parts else np.zeros(empty_shape, dtype)
-
-
-def _initial_vertical(
-    segments: list[np.ndarray], rotation: Callable, K: np.ndarray, config: FrontendConfig
-) -> np.ndarray | None:
-    """The vertical of the first frame, from the first frames' own verticals (no prior).
-
-    Single-frame verticals are either good (0.1-0.3 deg on the synthetic corridor) or far off, so
-    the largest group agreeing within track_gate_deg is found, and its earliest frame's vertical
-    is rotated back into the first frame by the chained point-track rotations (chaining all of
-    them would add their drift). None when no frame shows a vertical or the chain is broken.
-    """
-    R_f0 = np.eye(3)  # x_f = R_f0 x_0
-    chain: list[np.ndarray | None] = []
-    found: list[tuple[int, np.ndarray]] = []
-    for f, segs in enumerate(segments):
-        if f > 0 and R_f0 is not None:
-            R = rotation(f - 1, f)
-            R_f0 = None if R is None else R @ R_f0
-        chain.append(R_f0)
-        try:
-            res = estimate_frame(segs, K, None, config.vp)
-        except GeometryError:
-            continue
-        if res.vertical_c is not None:
-            v = res.vertical_c
-            found.append((f, v if v[1] <= 0 else -v))  # up is -y for an upright camera
-    if not found:
-        return None
-    V = np.array([v for _, v in found])
-    agree = np.degrees(np.arccos(np.clip(np.abs(V @ V.T), 0, 1))) <= config.vp.track_gate_deg
-    group = np.flatnonzero(agree[int(np.argmax(agree.sum(axis=1)))])
-    f, v = found[int(group[0])]
-    if chain[f] is None:
-        return None
-    v = chain[f].T @ v
-    return v / np.linalg.norm(v)
-
-
-def _vanishing(
-    line_frame: np.ndarray,
-    line_xy: np.ndarray,
-    points: tuple[np.ndarray, np.ndarray, np.ndarray],
-    is_keyframe: np.ndarray,
-    K: np.ndarray,
-    config: FrontendConfig,
-    stats: FrontendStats,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-frame VPs and labels: vertical from the first frames, then tracked. (Kl,), (F, V, 3), (F,).
-
-    The tracked vertical is rotated from frame to frame by the relative rotation of the point
-    tracks (`points`: frame row, track id, undistorted pixels; a robust rotation-only fit, which
-    moved the vertical within 0.06-0.08 deg median per frame on the synthetic corridor, as well as
-    essential-matrix RANSAC at a tenth of its cost), then blended with each frame's refined vertical.
-    """
-    n_frames = len(is_keyframe)
-    labels = np.full(len(line_frame), -1, np.int64)
-    if not config.vanishing:
-        stats.vertical_source = "off"
-        return labels, np.full((n_frames, 3, 3), np.nan), np.full(n_frames, -1, np.int64)
-    bounds = np.searchsorted(line_frame, np.arange(n_frames + 1))
-    per_frame = [line_xy[bounds[f] : bounds[f + 1]] for f in range(n_frames)]
-    p_frame, p_track, p_uv = points
-    p_bounds = np.searchsorted(p_frame, np.arange(n_frames + 1))
-
-    def rotation(a: int, b: int) -> np.ndarray | None:
-        sa, sb = slice(p_bounds[a], p_bounds[a + 1]), slice(p_bounds[b], p_bounds[b + 1])
-        uv_a, uv_b = common_points(p_track[sa], p_uv[sa], p_track[sb], p_uv[sb])
-        if len(uv_a) < MIN_ROTATION_POINTS:
-            return None
-        return rotation_from_bearings(uv_a, uv_b, K)
-
-    vertical = _initial_vertical(per_frame[: config.vertical_init_frames], rotation, K, config)
-    if vertical is not None:
-        stats.vertical_source = "initialised"
-    else:
-        try:  # no rotation chain (e.g. tracking broke at once): the frames' verticals averaged as they are
-            vertical = estimate_vertical(per_frame[: config.vertical_init_frames], K, config.vp)
-            stats.vertical_source = "initialised-unaligned"
-        except GeometryError as exc:
-            log.warning("vanishing points: %s; estimating each frame without a vertical prior", exc)
-            stats.vertical_source = "per-frame"
-    results: list = [None] * n_frames
-    stride = max(1, config.vp_stride)
-    last = None
-    prev = None  # row of the frame the tracked vertical refers to
-    for f in range(n_frames):
-        if last is not None and f % stride and not is_keyframe[f]:
-            # between estimates: the last directions, this frame's segments classified against them
-            labels[bounds[f] : bounds[f + 1]] = classify_segments(per_frame[f], K, last.dirs_c, config.vp)
-            results[f] = last
-            continue
-        if vertical is not None and prev is not None:
-            R = rotation(prev, f)
-            if R is not None:
-                vertical = update_vertical(vertical, None, R, config.vp)
-                stats.vertical_rotations += 1
-        prev = f
-        try:
-            res = estimate_frame(per_frame[f], K, vertical, config.vp)
-        except GeometryError as exc:
-            log.debug("frame row %d: no vanishing directions (%s)", f, exc)
-            stats.vp_failures += 1
-            continue
-        labels[bounds[f] : bounds[f + 1]] = res.labels
-        if vertical is not None:
-            vertical = update_vertical(vertical, res.vertical_c, None, config.vp)
-            if config.report_tracked_vertical and config.vp.use_vertical_prior and res.vertical_index == 0:
-                dirs_c = res.dirs_c.copy()
-                dirs_c[0] = vertical
-                res = dataclasses.replace(res, dirs_c=dirs_c)
-        results[f] = last = res
-    V = max([3] + [len(r.dirs_c) for r in results if r is not None])
-    dirs = np.full((n_frames, V, 3), np.nan)
-    vertical_vp = np.full(n_frames, -1, np.int64)
-    for f, r in enumerate(results):
-        if r is not None:
-            dirs[f, : len(r.dirs_c)] = r.dirs_c
-            vertical_vp[f] = r.vertical_index
-    return labels, dirs, vertical_vp

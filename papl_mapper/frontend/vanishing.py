@@ -137,7 +137,7 @@ def _prepare(segments: np.ndarray, K: np.ndarray, config: VPConfig) -> _Segments
     ones = np.ones((len(seg), 1))
     a = np.hstack([seg[:, :2], ones]) @ Kinv.T  # (S, 3)
     b = np.hstack([seg[:, 2:], ones]) @ Kinv.T
-    n = np.cross(a, b)
+    n = _cross(a, b)
     nn = np.linalg.norm(n, axis=1)
     d = seg[:, 2:] - seg[:, :2]
     length = np.hypot(d[:, 0], d[:, 1])
@@ -149,19 +149,36 @@ def _prepare(segments: np.ndarray, K: np.ndarray, config: VPConfig) -> _Segments
     return _Segments(seg, normals, length, orient, valid)
 
 
+def _cross_dot(seg: np.ndarray, K: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(S, V) |u x w| and |u . w| of each segment direction u and the direction w from its midpoint
+    towards each VP (homogeneous, up to scale): two (S, 3) @ (3, V) products instead of (S, V, 2) arrays.
+
+    With vp = K d = (a, b, c) and midpoint m: w = (a - c m_x, b - c m_y), so
+    u x w = u_x b - u_y a + c (u_y m_x - u_x m_y) and u . w = u_x a + u_y b - c (u . m).
+    """
+    vp = dirs @ K.T  # (V, 3) homogeneous vanishing points
+    mid = 0.5 * (seg[:, :2] + seg[:, 2:])  # (S, 2)
+    u = seg[:, 2:] - seg[:, :2]  # (S, 2)
+    ux, uy = u[:, 0], u[:, 1]
+    A_cross = np.stack([-uy, ux, uy * mid[:, 0] - ux * mid[:, 1]], axis=1)  # (S, 3) against (a, b, c)
+    A_dot = np.stack([ux, uy, -(ux * mid[:, 0] + uy * mid[:, 1])], axis=1)
+    return np.abs(A_cross @ vp.T), np.abs(A_dot @ vp.T)
+
+
+def _degenerate(seg: np.ndarray, cross: np.ndarray, dot: np.ndarray) -> np.ndarray:
+    """(S, V) True where the segment or its midpoint-to-VP direction has (near) zero length."""
+    u2 = np.square(seg[:, 2] - seg[:, 0]) + np.square(seg[:, 3] - seg[:, 1])  # (S,)
+    # |u|^2 |w|^2 = cross^2 + dot^2; degenerate when |u| < 1e-9 or |w| < 1e-9
+    return (u2 < 1e-18)[:, None] | (np.square(cross) + np.square(dot) < 1e-18 * u2[:, None])
+
+
 def segment_vp_angles_deg(segments: np.ndarray, K: np.ndarray, dirs_c: np.ndarray) -> np.ndarray:
     """(S, V) image angle (0..90 deg) between each segment and the line from its midpoint to each VP."""
     seg, K = _check_inputs(segments, K)
     dirs = np.asarray(dirs_c, np.float64).reshape(-1, 3)
-    vp = dirs @ K.T  # (V, 3) homogeneous vanishing points
-    mid = 0.5 * (seg[:, :2] + seg[:, 2:])  # (S, 2)
-    u = seg[:, 2:] - seg[:, :2]  # (S, 2)
-    w = vp[None, :, :2] - vp[None, :, 2:3] * mid[:, None, :]  # (S, V, 2) towards the VP (up to sign)
-    cross = np.abs(u[:, None, 0] * w[..., 1] - u[:, None, 1] * w[..., 0])
-    dot = np.abs(u[:, None, 0] * w[..., 0] + u[:, None, 1] * w[..., 1])
+    cross, dot = _cross_dot(seg, K, dirs)
     ang = np.degrees(np.arctan2(cross, dot))
-    degenerate = (np.hypot(w[..., 0], w[..., 1]) < 1e-9) | (np.hypot(u[:, 0], u[:, 1]) < 1e-9)[:, None]
-    ang[degenerate] = 90.0
+    ang[_degenerate(seg, cross, dot)] = 90.0
     return ang
 
 
@@ -200,7 +217,7 @@ class _SphereGrid:
             dev = np.minimum(dev, np.pi - dev)
             keep = dev <= np.radians(config.pair_max_angle_deg)
             i, j, dev = i[keep], j[keep], dev[keep]
-            p = np.cross(s.normals[i], s.normals[j])
+            p = _cross(s.normals[i], s.normals[j])
             pn = np.linalg.norm(p, axis=1)
             ok = pn > 1e-12
             p = p[ok] / pn[ok, None]
@@ -238,6 +255,16 @@ class _SphereGrid:
 # ---- helpers -----------------------------------------------------------------------------------------
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis of (..., 3) arrays (np.cross without its axis handling overhead)."""
+    a, b = np.broadcast_arrays(a, b)
+    out = np.empty(a.shape, np.result_type(a, b, np.float64))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
@@ -247,9 +274,9 @@ def _line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _perpendicular(v: np.ndarray) -> np.ndarray:
-    """A unit vector perpendicular to v (paper: d_h = [cos b, -sin b, 0] for d_v in polar form)."""
-    helper = np.array([0.0, 0.0, 1.0]) if abs(v[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    return _unit(np.cross(v, helper))
+    """Unit vectors perpendicular to v (3,) or (N, 3) (paper: d_h = [cos b, -sin b, 0] for polar d_v)."""
+    helper = np.where(np.abs(v[..., 2:3]) < 0.9, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+    return _unit(_cross(v, helper))
 
 
 def _sign_up(v: np.ndarray) -> np.ndarray:
@@ -297,17 +324,17 @@ def _two_line_search(s: _Segments, grid: _SphereGrid, config: VPConfig) -> tuple
     p = s.length[idx] / s.length[idx].sum()
     a = rng.choice(idx, size=config.n_first_hypotheses, p=p)
     b = rng.choice(idx, size=config.n_first_hypotheses, p=p)
-    v1 = np.cross(s.normals[a], s.normals[b])  # (H, 3)
+    v1 = _cross(s.normals[a], s.normals[b])  # (H, 3)
     n1 = np.linalg.norm(v1, axis=1)
     ok = n1 > 1e-9
     if not ok.any():
         raise GeometryError("vanishing points: all sampled segment pairs are collinear")
     v1 = v1[ok] / n1[ok, None]
-    base = np.array([_perpendicular(v) for v in v1])  # (H, 3)
-    other = np.cross(v1, base)
+    base = _perpendicular(v1)  # (H, 3)
+    other = _cross(v1, base)
     theta = np.radians(np.arange(0.0, 360.0, config.proposal_step_deg))
     v2 = np.cos(theta)[None, :, None] * base[:, None, :] + np.sin(theta)[None, :, None] * other[:, None, :]
-    v3 = np.cross(np.broadcast_to(v1[:, None, :], v2.shape), v2)
+    v3 = _cross(v1[:, None, :], v2)
     score = grid.score(v1)[:, None] + grid.score(v2) + grid.score(v3)  # (H, T)
     h, t = np.unravel_index(np.argmax(score), score.shape)
     return np.stack([v1[h], v2[h, t], v3[h, t]]), float(score[h, t])
@@ -321,9 +348,17 @@ def _pick_vertical(dirs: np.ndarray, config: VPConfig) -> int:
 
 
 def _support(s: _Segments, K: np.ndarray, dirs: np.ndarray, mask: np.ndarray, config: VPConfig) -> np.ndarray:
-    """(S, T) line support of each segment for each direction: length x (1 - (angle / tol)^2)_+ ."""
-    ang = segment_vp_angles_deg(s.seg[mask], K, dirs)  # (S', T)
-    w = np.clip(1.0 - (ang / config.support_angle_deg) ** 2, 0.0, None)
+    """(S, T) line support of each segment for each direction: length x (1 - (angle / tol)^2)_+ .
+
+    The angle (arctan) is evaluated only where it is below tol (cross < tan(tol) dot), a small part of
+    the (S, T) grid of segments and proposals.
+    """
+    seg = s.seg[mask]
+    cross, dot = _cross_dot(seg, K, np.asarray(dirs, np.float64).reshape(-1, 3))
+    near = (cross < np.tan(np.radians(config.support_angle_deg)) * dot) & ~_degenerate(seg, cross, dot)
+    w = np.zeros(cross.shape)
+    ang = np.degrees(np.arctan2(cross[near], dot[near]))
+    w[near] = np.clip(1.0 - (ang / config.support_angle_deg) ** 2, 0.0, None)
     return w * s.length[mask, None]
 
 
@@ -338,10 +373,10 @@ def _horizontal_proposals(
     horizontal scored on the segments the first one leaves unexplained.
     """
     base = _perpendicular(dv)
-    other = np.cross(dv, base)
+    other = _cross(dv, base)
     theta = np.radians(np.arange(0.0, 360.0, config.proposal_step_deg))
     dh = np.cos(theta)[:, None] * base[None] + np.sin(theta)[:, None] * other[None]  # (T, 3)
-    dh2 = np.cross(dv[None], dh)  # (T, 3) the Manhattan partner of each proposal
+    dh2 = _cross(dv[None], dh)  # (T, 3) the Manhattan partner of each proposal
     if grid is not None:
         s1 = grid.score(dh)
         if config.manhattan_only:
