@@ -258,3 +258,33 @@ def test_anchor_from_observation_meets_the_line(rng):
     np.testing.assert_allclose(g.line_distance(g.anchored_plucker(v, r, b, T_wr), L), 0, atol=1e-9)
     # the observed midpoint is not the projection of the 3D midpoint (perspective), so z differs
     assert abs(1 / r - ends_c[:, 2].mean()) > 1e-3
+
+
+def test_anchored_offset_reaches_any_parallel_line_and_jacobians(rng):
+    """The 2-dof anchor (r, s): placed on a line that misses the observed-midpoint ray, it reproduces the
+    line exactly; its Jacobians (v, (r, s), reference pose) match central differences."""
+    T_wr = random_pose(rng)
+    ends_c = np.array([[-1.0, 0.2, 4.0], [1.0, 0.4, 5.0]])
+    ends = g.transform(T_wr, ends_c)
+    uv, _ = g.project_points(K, np.stack([T_wr, T_wr]), ends)
+    L = g.plucker_from_endpoints(*ends)
+    v = L[3:] / np.linalg.norm(L[3:])
+    noisy = uv.ravel() + np.array([0.0, 3.0, 0.0, 3.0])  # the reference observation is 3 px off
+    b, _, _ = g.anchor_from_observation(noisy, K, T_wr, L)
+    line_px = np.cross(np.append(noisy[:2], 1.0), np.append(noisy[2:], 1.0))
+    q = g.anchor_offset_direction(line_px, K)
+    assert q[2] == 0.0
+    rs, sin = g.offset_anchor_on_line(b, q, T_wr, L)
+    assert sin > 0.1 and rs[0] > 0 and abs(rs[1]) > 1.0  # about 3 px across
+    np.testing.assert_allclose(g.line_distance(g.anchored_offset_plucker(v, rs, b, q, T_wr), L), 0, atol=1e-9)
+    # the paper's one-dof anchor on that ray cannot: the best depth leaves a gap
+    r_paper, _ = g.ray_inverse_depth(b, T_wr, L)
+    assert g.line_distance(g.anchored_plucker(v, r_paper, b, T_wr), L) > 1e-3
+    _, J_v, J_rs, J_xi = g.anchored_offset_plucker(v, rs, b, q, T_wr, jacobians=True)
+    assert_jac(J_v, num_jac(lambda v_: g.anchored_offset_plucker(v_, rs, b, q, T_wr), v))
+    assert_jac(J_rs, num_jac(lambda p: g.anchored_offset_plucker(v, p, b, q, T_wr), rs))
+    assert_jac(J_xi, num_jac(lambda T_: g.anchored_offset_plucker(v, rs, b, q, T_), T_wr, g.retract, 6))
+    # with s = 0 it is the paper's form
+    np.testing.assert_allclose(
+        g.anchored_offset_plucker(v, np.array([0.3, 0.0]), b, q, T_wr), g.anchored_plucker(v, 0.3, b, T_wr)
+    )

@@ -23,6 +23,7 @@ from papl_mapper import geometry as geo
 from papl_mapper.backend.config import BAConfig
 from papl_mapper.backend.factors import (
     AX,
+    RS,
     D,
     F,
     P,
@@ -68,7 +69,8 @@ class BAResult:
     n_variables: dict[str, int]
     n_observations: dict[str, int]
     line_params: dict[str, int]
-    """Optimised line parameters: anchored n + 2 per optimised axis, temporary-VP 3n, orthonormal 4n."""
+    """Optimised line parameters: anchored 2n (n with BAConfig.anchor_offset off, the paper's count) + 2 per
+    optimised axis, temporary-VP 4n (3n), orthonormal 4n."""
     dropped: dict[str, int] = field(default_factory=dict)
     lm_linearize_s: float = 0.0
     """Total seconds in linearisation during the optimisation."""
@@ -173,7 +175,10 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
                 values.insert(U(i), gtsam.Rot3(Urot))
                 values.insert(W(i), np.array([phi]))
             else:
-                values.insert(R(kind, i), np.array([grp.inv_depth[i]]))
+                if config.anchor_offset:
+                    values.insert(RS(kind, i), np.array([grp.inv_depth[i], 0.0]))
+                else:
+                    values.insert(R(kind, i), np.array([grp.inv_depth[i]]))
                 if kind == KIND_TVP:
                     values.insert(D(i), gtsam.Unit3(grp.L0[i, 3:]))
         if len(grp):
@@ -188,6 +193,7 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
                 config.line_sigma_px,
                 config.huber_k,
                 config.line_factor,
+                config.anchor_offset,
             )
             for f in batch.make_factors():
                 graph.add(f)
@@ -207,7 +213,9 @@ class _State:
     inv_depth: dict[str, np.ndarray]  # kind -> (n,) inverse depths (anchored and temporary-VP)
 
 
-def _state(m: Map, pb: Problem, values: gtsam.Values, batches: dict | None = None) -> _State:
+def _state(
+    m: Map, pb: Problem, values: gtsam.Values, batches: dict | None = None, offset: bool = False
+) -> _State:
     T = m.keyframes.T_wc.copy()
     held = pb.kf_fixed.copy()  # held poses keep their exact input values (the prior lets them drift 1e-14)
     if pb.gauge is not None:
@@ -232,13 +240,25 @@ def _state(m: Map, pb: Problem, values: gtsam.Values, batches: dict | None = Non
                 for i in range(n)
             ]
         else:
-            r = np.array([values.atVector(R(kind, i))[0] for i in range(n)])
-            inv[kind] = r
             if kind == KIND_TVP:
                 v = np.array([values.atUnit3(D(i)).point3() for i in range(n)]).reshape(-1, 3)
             else:
                 v = axes[np.argmax(grp.weights, axis=1)] if n else np.zeros((0, 3))
-            L = geo.anchored_plucker(v, r, grp.bearing, T[grp.ref_kf]) if n else []
+            if offset:
+                rs = np.array([values.atVector(RS(kind, i)) for i in range(n)]).reshape(n, 2)
+                r = rs[:, 0]
+                L = (
+                    geo.anchored_offset_plucker(v, rs, grp.bearing, grp.offset_dir, T[grp.ref_kf])
+                    if n
+                    else []
+                )
+            else:
+                r = np.array([values.atVector(R(kind, i))[0] for i in range(n)])
+                L = geo.anchored_plucker(v, r, grp.bearing, T[grp.ref_kf]) if n else []
+            # what the Map stores: 1/z of the point of the observed-midpoint ray closest to the line (the
+            # anchor's own 1/z where that ray does not meet the line in front)
+            r_obs, _ = geo.ray_inverse_depth(grp.obs_bearing, T[grp.ref_kf], np.asarray(L).reshape(-1, 6))
+            inv[kind] = np.where(np.isfinite(r_obs) & (r_obs > 0), r_obs, r)
         lines[kind] = geo.normalize_plucker(np.asarray(L).reshape(-1, 6)) if n else np.zeros((0, 6))
     return _State(T, xyz, axes, lines, inv)
 
@@ -267,7 +287,7 @@ def _rms(m: Map, pb: Problem, st: _State) -> dict[str, float]:
 def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0: float) -> BAResult:
     g = _build_graph(m, pb, config)
     setup_s = time.perf_counter() - t0
-    init_state = _state(m, pb, g.values, g.batches)
+    init_state = _state(m, pb, g.values, g.batches, config.anchor_offset)
     initial_rms = _rms(m, pb, init_state)
     optimizer = LevenbergMarquardt(g.graph, g.values, config.lambda_initial)
     initial_cost = optimizer.error
@@ -314,7 +334,7 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
         solve_s = time.perf_counter() - ts
     except RuntimeError:  # hard-constraint (fixed pose) factors do not solve by Cholesky: no figure
         solve_s = float("nan")
-    st = _state(m, pb, values, g.batches)
+    st = _state(m, pb, values, g.batches, config.anchor_offset)
     final_rms = _rms(m, pb, st)
     out = _write_back(m, pb, st)
     _check_finite(out, pb)
@@ -346,9 +366,9 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
             KIND_ANCHORED: (
                 2 * n_lines[KIND_ANCHORED]
                 if config.structural_lines == KIND_FIXDIR
-                else n_lines[KIND_ANCHORED] + 2 * n_axes_var
+                else (2 if config.anchor_offset else 1) * n_lines[KIND_ANCHORED] + 2 * n_axes_var
             ),
-            KIND_TVP: 3 * n_lines[KIND_TVP],
+            KIND_TVP: (4 if config.anchor_offset else 3) * n_lines[KIND_TVP],
             KIND_ORTHO: 4 * n_lines[KIND_ORTHO],
         },
         dropped=dict(pb.dropped),

@@ -36,6 +36,12 @@ def R(kind: str, i: int) -> int:
     return gtsam.symbol("r" if kind == "anchored" else "s", int(i))
 
 
+def RS(kind: str, i: int) -> int:
+    """Key of the (inverse depth, sideways offset px) (Vector2) of line i of an anchored ('g') or
+    temporary-VP ('h') group when BAConfig.anchor_offset is on."""
+    return gtsam.symbol("g" if kind == "anchored" else "h", int(i))
+
+
 def D(i: int) -> int:
     """Key of the private vanishing direction (Unit3) of temporary-VP line i."""
     return gtsam.symbol("d", int(i))
@@ -73,7 +79,7 @@ def huber_sqrt_weight(e: np.ndarray, k: float) -> np.ndarray:
 def _dim(key: int) -> int:
     """Tangent dimension of a variable, from its key's symbol character."""
     c = chr(gtsam.Symbol(key).chr())
-    return {"x": 6, "r": 1, "s": 1, "w": 1, "a": 2, "d": 2, "u": 3, "f": 2}[c]
+    return {"x": 6, "r": 1, "s": 1, "g": 2, "h": 2, "w": 1, "a": 2, "d": 2, "u": 3, "f": 2}[c]
 
 
 def axis_prior_factor(axis: int, v0: np.ndarray, sigma_rad: float) -> gtsam.CustomFactor:

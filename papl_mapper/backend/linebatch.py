@@ -19,7 +19,7 @@ import gtsam
 import numpy as np
 
 from papl_mapper import geometry as geo
-from papl_mapper.backend.factors import AX, D, F, R, U, W, X, huber_cost_residual, huber_sqrt_weight
+from papl_mapper.backend.factors import AX, RS, D, F, R, U, W, X, _dim, huber_cost_residual, huber_sqrt_weight
 from papl_mapper.backend.problem import KIND_ANCHORED, KIND_ORTHO, KIND_TVP, LineGroup
 
 _POSE, _VEC, _UNIT, _ROT, _VEC2 = 0, 1, 2, 3, 4
@@ -41,8 +41,10 @@ class LineBatch:
         sigma_px: float,
         huber_k: float,
         granularity: str = "track",
+        offset: bool = False,
     ) -> None:
         self.kind, self.grp, self.K = kind, grp, K
+        self.offset = offset and kind in (KIND_ANCHORED, KIND_TVP)  # (r, s) per line instead of r
         self.T_const, self.pose_var = T_const, pose_var
         self.axis_dirs, self.axis_var = axis_dirs, axis_var
         self.sigma, self.k = sigma_px, huber_k
@@ -83,12 +85,14 @@ class LineBatch:
                 elif kind == KIND_FIXDIR:
                     c0 = add(F(i), (_VEC2, i))
                     c_ax = {}
+                elif self.offset:
+                    c0 = add(RS(kind, i), (_VEC2, i))
                 else:
                     c0 = add(R(kind, i), (_VEC, i))
-                    if kind == KIND_TVP:
-                        c_ax = {-1: add(D(i), (_UNIT, i))}
-                    else:
-                        c_ax = {int(a): add(AX(a), (_UNIT, int(a))) for a in axes if self.axis_var[a]}
+                if kind == KIND_TVP:
+                    c_ax = {-1: add(D(i), (_UNIT, i))}
+                elif kind == KIND_ANCHORED:
+                    c_ax = {int(a): add(AX(a), (_UNIT, int(a))) for a in axes if self.axis_var[a]}
                 ref = int(grp.ref_kf[i]) if kind != KIND_FIXDIR else -1
                 c_ref = add(X(ref), (_POSE, ref)) if ref >= 0 and self.pose_var[ref] else -1
                 c_obs = [
@@ -97,7 +101,7 @@ class LineBatch:
                 ]
                 keys, checks = kl.keys, kl.checks
                 rows = 2 * len(axes) * len(obs_list)
-                dims = [_dim_of(kind, key) for key in keys]
+                dims = [_dim(key) for key in keys]
                 blocks = []
                 for d in dims:
                     blocks.append((total, rows, d))
@@ -126,7 +130,7 @@ class LineBatch:
         self.u_w = np.array(u_w, np.float64)
         self.u_row = np.array(u_row, np.int64)
         self.buffer = np.zeros(total)
-        d0, d1 = {KIND_ORTHO: (3, 1), KIND_FIXDIR: (2, 1)}.get(kind, (1, 2))
+        d0, d1 = {KIND_ORTHO: (3, 1), KIND_FIXDIR: (2, 1)}.get(kind, (2 if self.offset else 1, 2))
         self._idx = {
             name: _block_index(np.array(offs[name], np.int64), self.u_row, dim)
             for name, dim in (("p0", d0), ("p1", d1), ("ref", 6), ("obs", 6))
@@ -200,7 +204,10 @@ class LineBatch:
             snap["U"] = np.array([values.atRot3(U(i)).matrix() for i in range(n)]).reshape(n, 3, 3)
             snap["s"] = np.array([values.atVector(W(i))[0] for i in range(n)])
             return snap
-        snap["s"] = np.array([values.atVector(R(kind, i))[0] for i in range(n)])
+        if self.offset:
+            snap["ab"] = np.array([values.atVector(RS(kind, i)) for i in range(n)]).reshape(n, 2)
+        else:
+            snap["s"] = np.array([values.atVector(R(kind, i))[0] for i in range(n)])
         if kind == KIND_TVP:
             u3 = [values.atUnit3(D(i)) for i in range(n)]
         else:
@@ -232,9 +239,19 @@ class LineBatch:
             J_par = geo.ortho_jacobian(Uu, phi) if jac else None
         else:
             vi = line if kind == KIND_TVP else self.u_axis
-            out = geo.anchored_plucker(
-                snap["v"][vi], snap["s"][line], grp.bearing[line], T[grp.ref_kf[line]], jac
-            )
+            if self.offset:
+                out = geo.anchored_offset_plucker(
+                    snap["v"][vi],
+                    snap["ab"][line],
+                    grp.bearing[line],
+                    grp.offset_dir[line],
+                    T[grp.ref_kf[line]],
+                    jac,
+                )
+            else:
+                out = geo.anchored_plucker(
+                    snap["v"][vi], snap["s"][line], grp.bearing[line], T[grp.ref_kf[line]], jac
+                )
             L = out[0] if jac else out
         T_obs = T[grp.obs_kf[obs]]
         xy = grp.obs_xy[obs]
@@ -263,7 +280,8 @@ class LineBatch:
         else:
             _, J_v, J_r, J_ref = out
             Bu = snap["B"][vi]
-            blocks = {"p0": (J_eL @ J_r[..., None]), "p1": J_eL @ (J_v @ Bu), "ref": J_eL @ J_ref}
+            J_r = J_r if self.offset else J_r[..., None]
+            blocks = {"p0": J_eL @ J_r, "p1": J_eL @ (J_v @ Bu), "ref": J_eL @ J_ref}
         blocks["obs"] = J_e @ J_xc
         for name in ("p0", "p1", "obs"):
             if name not in blocks:
@@ -310,8 +328,3 @@ def _block_index(off: np.ndarray, row: np.ndarray, dim: int) -> tuple[np.ndarray
     sel = np.flatnonzero(off >= 0)
     idx = off[sel, None, None] + (row[sel, None, None] + np.arange(2)[None, :, None]) * dim + np.arange(dim)
     return sel, idx
-
-
-def _dim_of(kind: str, key: int) -> int:
-    c = chr(gtsam.Symbol(key).chr())
-    return {"x": 6, "r": 1, "s": 1, "w": 1, "a": 2, "d": 2, "u": 3, "f": 2}[c]

@@ -31,10 +31,12 @@ class LineGroup:
     obs_kf: np.ndarray  # (k,) keyframe rows
     obs_xy: np.ndarray  # (k, 4) pixels
     ref_kf: np.ndarray  # (n,) keyframe rows (-1 for orthonormal lines)
-    bearing: np.ndarray  # (n, 3) midpoint bearing in the reference keyframe (x, y, 1)
-    inv_depth: np.ndarray  # (n,) 1 / z of the midpoint in the reference keyframe
+    bearing: np.ndarray  # (n, 3) anchor bearing in the reference keyframe (x, y, 1)
+    inv_depth: np.ndarray  # (n,) 1 / z of the anchor in the reference keyframe
     L0: np.ndarray  # (n, 6) initial Pluecker line, |v| = 1
     weights: np.ndarray  # (n, A) axis weights in the graph (anchored), zeros otherwise
+    offset_dir: np.ndarray  # (n, 3) sideways anchor direction q (z = 0; BAConfig.anchor_offset), else zeros
+    obs_bearing: np.ndarray  # (n, 3) bearing of the observed segment midpoint in the reference keyframe
 
     @classmethod
     def empty(cls, n_axes: int) -> LineGroup:
@@ -49,6 +51,8 @@ class LineGroup:
             np.zeros(0),
             np.zeros((0, 6)),
             np.zeros((0, n_axes)),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
         )
 
     def __len__(self) -> int:
@@ -281,15 +285,22 @@ def _build_lines(
     stored = np.full(M, -1, np.int64)
     has_ref = lines.ref_keyframe_id >= 0
     stored[has_ref] = _rows_of(m.keyframes.ids, lines.ref_keyframe_id[has_ref])
+    # With the sideways offset the anchor is re-made on the current estimate at every BA (the offset, not a
+    # fixed ray, lets the line move): the observed midpoint moved onto the current line's image, so its ray
+    # meets the current line and (r, s = 0) reproduces it exactly.
     anchor_xy = o_xy
-    if config.anchor_bearing == "estimate" and len(o_xy):
+    q_all = np.zeros((len(o_xy), 3))
+    if (config.anchor_bearing == "estimate" or config.anchor_offset) and len(o_xy):
         # the observed midpoint moved onto the current line's image: the ray then meets the current line
         l = geo.project_line(K, geo.plucker_to_camera(L0[o_row], T[o_kf]))
         mid = (o_xy[:, :2] + o_xy[:, 2:]) / 2.0
         s2 = np.maximum(np.sum(l[:, :2] ** 2, 1), 1e-300)
         foot = mid - ((np.sum(l[:, :2] * mid, 1) + l[:, 2]) / s2)[:, None] * l[:, :2]
         anchor_xy = np.concatenate([foot, foot], 1)
+        if config.anchor_offset:
+            q_all = geo.anchor_offset_direction(l, K)
     b_all, r_all, sin_all = geo.anchor_from_observation(anchor_xy, K, T[o_kf], L0[o_row])
+    b_obs, _, _ = geo.anchor_from_observation(o_xy, K, T[o_kf], L0[o_row]) if len(o_xy) else (b_all, 0, 0)
     cand = needs_ref[o_row] & np.isfinite(r_all) & (r_all > 0)
     cand &= sin_all > np.sin(np.radians(config.min_ray_angle_deg))
     prefer = (o_kf == stored[o_row]).astype(np.int64)
@@ -301,9 +312,13 @@ def _build_lines(
     pick = pick[cand[pick]]
     ref = np.full(M, -1, np.int64)
     bearing = np.zeros((M, 3))
+    q = np.zeros((M, 3))
+    obs_bearing = np.zeros((M, 3))
     inv = np.full(M, np.nan)
     ref[o_row[pick]] = o_kf[pick]
     bearing[o_row[pick]] = b_all[pick]
+    q[o_row[pick]] = q_all[pick]
+    obs_bearing[o_row[pick]] = b_obs[pick]
     inv[o_row[pick]] = r_all[pick]
     no_ref = needs_ref & (ref < 0) & line_keep
     _drop(
@@ -334,6 +349,8 @@ def _build_lines(
             inv_depth=inv[rows],
             L0=geo.normalize_plucker(L0[rows]),
             weights=w[rows] if A else np.zeros((len(rows), 0)),
+            offset_dir=q[rows],
+            obs_bearing=obs_bearing[rows],
         )
     axis_used = (groups[KIND_ANCHORED].weights > 0).any(axis=0) if A else np.zeros(0, bool)
     return groups, axis_used

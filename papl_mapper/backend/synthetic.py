@@ -210,7 +210,7 @@ def align_sim3(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.
 
 
 def errors(est: Map, truth: Map, align: bool | str = True) -> dict[str, float]:
-    """ATE RMSE of camera centres, point RMSE, mean Pluecker line error (paper's Error_l, |v| = 1),
+    """ATE RMSE of camera centres, point RMSE, mean and median Pluecker line error (paper's Error_l, |v| = 1),
     mean line angle (deg). `align`: True for a similarity alignment on camera centres and points together
     (a near-straight camera path alone leaves the rotation about it undetermined); "scale" for a scale
     about the first camera only (when the gauge holds the first pose at the truth); False for none."""
@@ -236,7 +236,9 @@ def errors(est: Map, truth: Map, align: bool | str = True) -> dict[str, float]:
     if len(truth.lines):
         Le = geo.plucker_from_endpoints(tf(est.lines.endpoints_w[:, 0]), tf(est.lines.endpoints_w[:, 1]))
         Lt = geo.plucker_from_endpoints(truth.lines.endpoints_w[:, 0], truth.lines.endpoints_w[:, 1])
-        out["line_error"] = float(np.mean(geo.line_distance(Le, Lt)))
+        dist = geo.line_distance(Le, Lt)
+        out["line_error"] = float(np.mean(dist))
+        out["line_error_median"] = float(np.median(dist))  # the mean is ruled by a few depth-starved lines
         out["line_angle_deg"] = float(np.mean(geo.line_angle_deg(Le, Lt)))
     if len(truth.axes):
         da = np.abs(np.sum((est.axes.directions @ R_.T) * truth.axes.directions, 1))

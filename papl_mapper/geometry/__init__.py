@@ -6,6 +6,8 @@ Knows nothing of gtsam; the backend feeds these functions' analytic Jacobians to
 from papl_mapper.geometry.lines import (
     anchor_from_endpoints,
     anchor_from_observation,
+    anchor_offset_direction,
+    anchored_offset_plucker,
     anchored_plucker,
     clip_to_observations,
     direction_from_latlon,
@@ -16,6 +18,7 @@ from papl_mapper.geometry.lines import (
     line_intrinsics,
     line_point_dir,
     normalize_plucker,
+    offset_anchor_on_line,
     ortho_from_plucker,
     ortho_jacobian,
     ortho_retract,
@@ -52,6 +55,8 @@ from papl_mapper.geometry.triangulation import (
 __all__ = [
     "anchor_from_endpoints",
     "anchor_from_observation",
+    "anchor_offset_direction",
+    "anchored_offset_plucker",
     "anchored_plucker",
     "clip_to_observations",
     "direction_from_latlon",
@@ -64,6 +69,7 @@ __all__ = [
     "line_point_dir",
     "make_T",
     "normalize_plucker",
+    "offset_anchor_on_line",
     "observation_planes",
     "ortho_from_plucker",
     "ortho_jacobian",

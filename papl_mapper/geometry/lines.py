@@ -13,6 +13,11 @@ endpoints) matters: the observed midpoint lies on the image of the true line, so
 true line and the three parameters can reach it; a bearing through a noisy 3D midpoint generally misses
 it. What a Map stores: `ref_keyframe_id` and `inverse_depth` r; b is re-derived from the line's
 observation in the reference keyframe (`anchor_from_observation`). During one optimisation b is constant.
+
+That paper form gives a line ONE degree of freedom (its depth along the fixed ray): the line can never
+leave the plane through the reference camera, the ray and v, so the noise of the one reference observation
+is never averaged out. `anchored_offset_plucker` adds s, a sideways shift of the anchor across the line in
+the reference image (2 per line + 2 per axis, the minimal count for lines parallel to a known direction).
 """
 
 from __future__ import annotations
@@ -312,6 +317,68 @@ def anchored_plucker(
     J_xi[..., :3, :3] = -Sv @ dP_dw
     J_xi[..., :3, 3:] = -Sv @ R
     return L, J_v, J_r, J_xi
+
+
+def anchor_offset_direction(line_px: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """The sideways direction q (..., 3), z = 0, in which `anchored_offset_plucker` moves its anchor: the
+    unit pixel normal of the image line `line_px` (..., 3) (a, b, c) mapped by K^-1, so the offset s is in
+    pixels across the line in the reference image."""
+    n = line_px[..., :2] / np.maximum(np.linalg.norm(line_px[..., :2], axis=-1, keepdims=True), 1e-300)
+    hom = np.concatenate([n, np.zeros(n.shape[:-1] + (1,))], -1)
+    return hom @ np.linalg.inv(K).T
+
+
+def anchored_offset_plucker(
+    v: np.ndarray,
+    rs: np.ndarray,
+    bearing_c: np.ndarray,
+    q_c: np.ndarray,
+    T_wr: np.ndarray,
+    jacobians: bool = False,
+):
+    """L_w = (P_w x v, v) with P_w = T_wr ((b + s q) / r), rs = (r, s) (..., 2): an anchored line with two
+    degrees of freedom per line. r is the paper's inverse depth of the anchor in the reference keyframe,
+    s moves the anchor s pixels across the line in that image (q from `anchor_offset_direction`, z = 0, so
+    1/r stays the anchor's depth). With s the line can reach every line of direction v, not only those
+    meeting one fixed ray (the paper's n + 2 form, `anchored_plucker`, is s = 0 held).
+
+    With `jacobians` also dL/dv (..., 6, 3), dL/d(r, s) (..., 6, 2) and dL/dxi_ref (..., 6, 6).
+    """
+    rs = np.asarray(rs, dtype=np.float64)
+    r, s = rs[..., 0], rs[..., 1]
+    b = bearing_c + s[..., None] * q_c
+    if not jacobians:
+        return anchored_plucker(v, r, b, T_wr)
+    L, J_v, J_r, J_xi = anchored_plucker(v, r, b, T_wr, jacobians=True)
+    J_rs = np.zeros(L.shape + (2,))
+    J_rs[..., 0] = J_r
+    Rq = np.einsum("...ij,...j->...i", T_wr[..., :3, :3], q_c)
+    J_rs[..., :3, 1] = -np.einsum("...ij,...j->...i", skew(v), Rq) / r[..., None]
+    return L, J_v, J_rs, J_xi
+
+
+def offset_anchor_on_line(
+    bearing_c: np.ndarray, q_c: np.ndarray, T_wr: np.ndarray, L_w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(r, s) (..., 2) that put the anchor (b + s q) / r on the line L_w, and the sine of the angle between
+    the line and the anchor plane span(b, q) (near 0: the line lies in that plane and (r, s) is undefined;
+    r <= 0: the line meets the plane behind the camera)."""
+    P0, d = line_point_dir(L_w)
+    Rt = np.swapaxes(T_wr[..., :3, :3], -1, -2)
+    X0 = np.einsum("...ij,...j->...i", Rt, P0 - T_wr[..., :3, 3])  # a point of the line, reference frame
+    dc = np.einsum("...ij,...j->...i", Rt, d)
+    n = np.cross(bearing_c, q_c)  # normal of the anchor plane
+    nn = np.linalg.norm(n, axis=-1)
+    dn = np.sum(dc * n, -1)
+    sin = np.abs(dn) / np.maximum(nn * np.linalg.norm(dc, axis=-1), 1e-300)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -np.sum(X0 * n, -1) / dn
+        X = X0 + t[..., None] * dc  # where the line meets the plane: X = z (b + s q), z = X_z (q_z = 0)
+        z = X[..., 2]
+        r = 1.0 / z
+        qq = np.sum(q_c * q_c, -1)
+        s = np.sum((X / z[..., None] - bearing_c) * q_c, -1) / qq
+    return np.stack([r, s], -1), sin
 
 
 # ---- endpoints from an infinite line --------------------------------------------------------
