@@ -12,6 +12,7 @@ from papl_mapper.mapping.lines import (
     line_through_planes,
     reprojection_rms,
     triangulate_lines,
+    vp_image_angle_deg,
 )
 
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
@@ -68,7 +69,7 @@ def test_planes_contain_the_segment():
 def test_exact_lines_with_and_without_vanishing_directions():
     segs, track, T, xy, vp = _scene()
     for dirs in (vp, np.full_like(vp, np.nan)):
-        est = triangulate_lines(track, T, xy, dirs, CAM.K)
+        est = triangulate_lines(track, T, xy, dirs, CAM.K, LineInitConfig(min_vp_fraction=0.0))
         assert len(est.track) == 20
         assert est.from_vp.all() == np.isfinite(dirs).all()
         assert _endpoint_error(est.endpoints_w, segs[est.track]).max() < EXACT_TOL
@@ -80,7 +81,7 @@ def test_noisy_lines_known_direction():
     segs, track, T, xy, vp = _scene(noise_px=0.5, seed=1)
     perp, angle = [], []
     for dirs in (vp, np.full_like(vp, np.nan)):
-        est = triangulate_lines(track, T, xy, dirs, CAM.K)
+        est = triangulate_lines(track, T, xy, dirs, CAM.K, LineInitConfig(min_vp_fraction=0.0))
         assert np.median(_endpoint_error(est.endpoints_w, segs[est.track])) < NOISY_ENDPOINT_TOL
         d = est.endpoints_w[:, 1] - est.endpoints_w[:, 0]
         d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -117,3 +118,50 @@ def test_helpers_agree():
     assert reprojection_rms(p, d, T[sel], xy[sel], CAM.K).max() < 1e-6
     ends = endpoint_extent(p, d, T[sel], xy[sel], CAM.K, 5.0)
     assert _endpoint_error(ends[None], segs[5:6])[0] < EXACT_TOL
+
+
+def test_texture_tracks_are_left_out():
+    """Tracks classified to a vanishing direction in few views are structural only if their segments
+    line up with its vanishing point; others (texture edges) are dropped unless min_vp_fraction is 0."""
+    segs, track, T, xy, vp = _scene()
+    view = np.arange(len(track)) // 20  # _scene lists the 20 segments camera by camera
+    rare = (track >= 10) & (view >= 2)  # tracks 10..19 are classified in 2 of their 8 views only
+    vp = vp.copy()
+    vp[rare] = np.nan
+    cfg = LineInitConfig(min_vp_fraction=0.5, max_vp_angle_deg=1.0)
+    # truly along their direction: the rarely classified tracks still line up with its vanishing point
+    est = triangulate_lines(track, T, xy, vp, CAM.K, cfg)
+    assert len(est.track) == 20 and est.from_vp.all()
+    assert _endpoint_error(est.endpoints_w, segs[est.track]).max() < EXACT_TOL
+    # texture edges: tracks 10..19 turned by 20 degrees in the wall plane, wrongly classified twice
+    tilt = np.radians(20.0)
+    mids = segs.mean(axis=1)
+    half = 0.4 * np.array([0.0, np.sin(tilt), np.cos(tilt)])
+    moved = segs.copy()
+    moved[10:] = np.stack([mids[10:] - half, mids[10:] + half], axis=1)
+    xy2 = xy.copy()
+    for i, T_wc in enumerate(T):
+        T_cw = np.linalg.inv(T_wc)
+        c = moved[track[i]] @ T_cw[:3, :3].T + T_cw[:3, 3]
+        xy2[i] = ((c @ CAM.K.T)[:, :2] / c[:, 2:3]).ravel()
+    est = triangulate_lines(track, T, xy2, vp, CAM.K, cfg)
+    assert sorted(est.track.tolist()) == list(range(10))
+    assert len(triangulate_lines(track, T, xy2, vp, CAM.K, LineInitConfig(min_vp_fraction=0.2)).track) >= 10
+    free = triangulate_lines(track, T, xy2, vp * np.nan, CAM.K, LineInitConfig(min_vp_fraction=0.0))
+    assert len(free.track) == 20  # 0 keeps every track, triangulated freely
+    assert _endpoint_error(free.endpoints_w, moved[free.track]).max() < EXACT_TOL
+
+
+def test_vp_image_angle():
+    """Zero for a segment along the projected direction, the known angle for a rotated one."""
+    segs, track, T, xy, vp = _scene()
+    ang = vp_image_angle_deg(T, xy, CAM.K, np.array([0.0, 0.0, 1.0]))  # the vertical of tracks 0, 2, ..
+    assert np.abs(ang[track % 2 == 0]).max() < 1e-6
+    # rotate one image segment by 5 degrees about its midpoint
+    k = int(np.flatnonzero(track % 2 == 0)[0])
+    a, b = xy[k, :2], xy[k, 2:]
+    m, h = 0.5 * (a + b), 0.5 * (b - a)
+    c, s_ = np.cos(np.radians(5.0)), np.sin(np.radians(5.0))
+    h = np.array([c * h[0] - s_ * h[1], s_ * h[0] + c * h[1]])
+    rot = np.concatenate([m - h, m + h])[None]
+    assert abs(vp_image_angle_deg(T[k : k + 1], rot, CAM.K, np.array([0.0, 0.0, 1.0]))[0] - 5.0) < 1e-3
