@@ -3,9 +3,11 @@ and its accuracy against the synthetic ground truth.
 
 Recording: the synthetic corridor walkthrough of papl_mapper.synth (Gaussian noise sigma 2),
 generated into a cache folder on first use. Throughput is frames / wall-clock seconds of
-`frontend.process` (decoding in its thread, segments in a worker thread, VPs afterwards), so it
-is the real-time figure; the per-step table is seconds of each step per frame ("lines" runs in
-parallel with "points"; "lines_wait" is the main thread waiting for it). Accuracy: segment
+`frontend.process` (decoding, segments and vanishing points each in their own thread beside the
+main thread's point tracking, segment tracking and descriptors), so it is the real-time figure; the
+per-step table is wall ms of each step per frame ("lines" runs in parallel with "points",
+"lines_wait" is the main thread waiting for it; "vp" runs beside the next frames, "vp_wait" is the
+wait after the last one) and the CPU ms of the thread running the step. Accuracy: segment
 detection precision/recall against the visible projected GT segments, frame-to-frame and
 keyframe LBD match precision, vanishing-direction errors against the GT axes; and segment recall
 of the York Urban hand labels (../shared/data/yud_train, when present).

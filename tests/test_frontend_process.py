@@ -204,13 +204,16 @@ def test_presets_and_segments_at_reduced_size(video):
 
 
 def test_threaded_stages_give_the_same_tracks(video, result):
-    """Vanishing points in a worker thread (the default) and segments in one (parallel) change nothing."""
+    """Vanishing points and segments in worker threads (the default) or in the main thread: same tracks."""
     path, cam, _, _ = video
     threaded, _, stats = result
-    assert FrontendConfig().vp_thread
+    assert FrontendConfig().vp_thread and FrontendConfig().parallel
     assert set(stats.cpu_seconds) == set(stats.seconds) and stats.cpu_seconds["vp"] > 0
-    for cfg in (FrontendConfig(vp_thread=False), FrontendConfig(parallel=True)):
+    cv_threads = cv2.getNumThreads()
+    sequential = FrontendConfig(vp_thread=False, parallel=False, opencv_threads=1)
+    for cfg in (sequential, FrontendConfig(vp_thread=False)):
         other = process(open_recording(path), cam, cfg)
+        assert cv2.getNumThreads() == cv_threads  # restored
         for f in dataclasses.fields(Tracks):
             a, b = getattr(threaded, f.name), getattr(other, f.name)
             if isinstance(a, np.ndarray):
