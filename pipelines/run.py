@@ -217,7 +217,20 @@ def map_tracks(
     with timer.stage("registration"), progress("keyframes") as cb:
         reg = register_keyframes(tracks, cfg.mapping, cb, refine if cfg.local_ba_every > 0 else None)
     T_wc = {f: np.linalg.inv(T) for f, T in reg.T_cw.items()}
-    stats: dict[str, Any] = {"frames_unregistered": len(reg.lost), "keyframes_registered": len(reg.frames)}
+    stats: dict[str, Any] = {
+        "frames_unregistered": len(reg.lost),
+        "keyframes_registered": len(reg.frames),
+        "revisits": [
+            {
+                "frame": rv.frame,
+                "old_frame": rv.old_frame,
+                "tracks_fused": len(rv.pairs),
+                "correction": round(rv.drift, 4),
+                "scale": round(rv.scale, 4),
+            }
+            for rv in reg.revisits
+        ],
+    }
     m = assemble_map(tracks, T_wc, reg.points_w, LineEstimates.empty())
     with timer.stage("ba_points"):
         m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points)")

@@ -18,6 +18,7 @@ from papl_mapper.eval.trajectory import Sim3, umeyama
 from papl_mapper.geometry.se3 import invert
 from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
+from papl_mapper.mapping.revisit import Revisit, RevisitConfig, TrackIndex, close_loop, find_revisit
 from papl_mapper.mapping.tracking import PnPConfig, PnPResult, track_pnp
 from papl_mapper.tracks import Tracks
 
@@ -32,6 +33,8 @@ class IncrementalConfig:
     """Two-view initialisation thresholds."""
     pnp: PnPConfig = field(default_factory=PnPConfig)
     """PnP tracking thresholds."""
+    revisit: RevisitConfig = field(default_factory=RevisitConfig)
+    """Revisit detection and loop closure."""
     init_search_keyframes: int = 25
     """How many keyframes after the first one to try as the initialisation partner."""
     min_parallax_deg: float = 2.0
@@ -78,6 +81,8 @@ class Registration:
     """PnP poses of the registered frames that are not keyframes."""
     lost: list[int] = field(default_factory=list)
     """Frames that could not be registered (tracking loss)."""
+    revisits: list[Revisit] = field(default_factory=list)
+    """Loops closed during registration."""
     init_frames: tuple[int, int] = (-1, -1)
 
 
@@ -185,9 +190,12 @@ def register_keyframes(
     frames in a row fail, a new segment is initialised further on; segments that share enough
     triangulated points with the map are merged into it by a Sim(3), the others are reported and
     left out (their frames are `lost`). `refine(reg)` runs after every `refine_every` keyframes.
+    Revisits of places mapped long before close loops and rename the later point tracks to the
+    earlier ones in `tracks.point_track` (in place), so later stages see one track per 3D point.
     """
     cfg = config or IncrementalConfig()
     tracks.validate()
+    index = TrackIndex.build(tracks) if cfg.revisit.enabled else None
     keyframes = np.flatnonzero(tracks.is_keyframe)
     segments: list[Registration] = []
     start = 0
@@ -195,7 +203,7 @@ def register_keyframes(
         reg = _initialise(tracks, keyframes[keyframes >= start], cfg)
         if reg is None:
             break
-        end = _extend(tracks, reg, start, cfg, progress, refine)
+        end = _extend(tracks, reg, start, cfg, progress, refine, index)
         segments.append(reg)
         start = end + 1
     if not segments:
@@ -217,6 +225,7 @@ def _extend(
     cfg: IncrementalConfig,
     progress: ProgressCallback | None,
     refine: Callable[[Registration], None] | None,
+    index: TrackIndex | None = None,
 ) -> int:
     """Register frames after the initial pair until tracking is lost; returns the last frame tried."""
     f1, f2 = reg.init_frames
@@ -248,6 +257,11 @@ def _extend(
             reg.frames.append(f)
             added = _triangulate_new(tracks, reg, f, cfg)
             log.debug("keyframe %d: %s, %d new points", f, res.reason, added)
+            if index is not None and tracks.is_keyframe[f]:
+                rv = find_revisit(tracks, reg.points_w, reg.T_cw, f, index, cfg.revisit)
+                if rv is not None and close_loop(tracks, reg.points_w, reg.T_cw, reg.T_cw_frames, rv, index):
+                    reg.revisits.append(rv)
+                    last_T = reg.T_cw[f]
             since_refine += 1
             if refine is not None and cfg.refine_every > 0 and since_refine >= cfg.refine_every:
                 refine(reg)

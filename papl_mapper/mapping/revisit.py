@@ -1,0 +1,264 @@
+"""Revisits: a keyframe that sees a place mapped long before is matched to the old points and the loop closed.
+
+The keyframe's ORB descriptors are matched to those of map points whose tracks ended at least
+`min_gap_frames` earlier and that the tracked pose projects near them (guided search, ratio test,
+mutual best), and PnP with RANSAC on the old 3D points verifies the match geometrically.
+Closing the loop spreads the drift (the Sim(3) between the tracked pose and the pose from the
+old points) over the frames since the old visit, then fuses each matched track into the old one,
+so later PnP, triangulation and bundle adjustment see one 3D point per place.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from papl_mapper.frontend.descriptors import match_descriptors
+from papl_mapper.mapping.tracking import PnPConfig, track_pnp
+from papl_mapper.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RevisitConfig:
+    """Thresholds of revisit detection and loop closure."""
+
+    enabled: bool = True
+    """Look for revisits at every frontend keyframe."""
+    min_gap_frames: int = 90
+    """Only map points whose tracks ended at least this many frames before count as an old visit."""
+    match_ratio: float = 0.8
+    """Lowe ratio of the best to the second-best ORB distance."""
+    max_hamming: int = 64
+    """Largest Hamming distance (of 256 bits) of a descriptor match."""
+    min_inliers: int = 20
+    """Fewest PnP inliers on the old points for a revisit."""
+    ransac_threshold_px: float = 3.0
+    """PnP inlier threshold of the verification."""
+    search_radius_px: float = 40.0
+    """An old point is matched only to keypoints this close to where the tracked pose projects it,
+    so look-alike places elsewhere (repeated doors, windows) cannot match."""
+    max_drift: float = 0.05
+    """Largest distance between the tracked and the revisit camera centre, as a fraction of the path
+    walked since the old visit: a larger jump is a look-alike place, not drift."""
+    max_drift_deg: float = 20.0
+    """Largest rotation between the tracked and the revisit pose."""
+
+
+@dataclass
+class Revisit:
+    """A verified revisit: frame, its pose from the old points, fused (new, old) track pairs, old frame."""
+
+    frame: int
+    T_cw: np.ndarray
+    pairs: np.ndarray  # (P, 2) int64: track seen now, track of the old visit
+    old_frame: int
+    drift: float = float("nan")  # camera-centre correction, in map units
+    scale: float = 1.0  # scale correction at the frame
+
+
+@dataclass
+class TrackIndex:
+    """One keyframe ORB descriptor per point track and the first and last frame of every track."""
+
+    desc_ids: np.ndarray  # (D,) sorted track ids that have a descriptor
+    desc: np.ndarray  # (D, 32) uint8
+    first: dict[int, int] = field(default_factory=dict)
+    last: dict[int, int] = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, tracks: Tracks) -> TrackIndex:
+        """Index the descriptors (the first keyframe's per track) and spans of `tracks`."""
+        tid = tracks.point_track[tracks.point_desc_row]
+        ids, first_row = np.unique(tid, return_index=True)
+        uniq, inv = np.unique(tracks.point_track, return_inverse=True)
+        lo = np.full(len(uniq), np.iinfo(np.int64).max)
+        hi = np.full(len(uniq), -1)
+        np.minimum.at(lo, inv, tracks.point_frame)
+        np.maximum.at(hi, inv, tracks.point_frame)
+        keys = uniq.tolist()
+        return cls(
+            ids,
+            tracks.point_desc[first_row] if len(ids) else np.zeros((0, 32), np.uint8),
+            dict(zip(keys, lo.tolist(), strict=True)),
+            dict(zip(keys, hi.tolist(), strict=True)),
+        )
+
+
+def find_revisit(
+    tracks: Tracks,
+    points_w: dict[int, np.ndarray],
+    T_cw: dict[int, np.ndarray],
+    frame: int,
+    index: TrackIndex,
+    cfg: RevisitConfig,
+) -> Revisit | None:
+    """The revisit seen by keyframe `frame` (its pose `T_cw[frame]` as tracked), or None."""
+    here = tracks.point_frame[tracks.point_desc_row] == frame
+    rows = tracks.point_desc_row[here]
+    if len(rows) < cfg.min_inliers:
+        return None
+    q_ids, q_uv, q_desc = tracks.point_track[rows], tracks.point_uv[rows], tracks.point_desc[here]
+    ended = frame - cfg.min_gap_frames
+    old = [t for t in index.desc_ids.tolist() if t in points_w and index.last[t] <= ended]
+    if len(old) < cfg.min_inliers:
+        return None
+    old_ids = np.array(old, np.int64)
+    X_old = np.stack([points_w[t] for t in old])
+    # guided search: old points are compared only with keypoints near where the tracked pose puts them
+    T = T_cw[frame]
+    Xc = X_old @ T[:3, :3].T + T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv_old = (Xc @ tracks.camera.K.T)[:, :2] / Xc[:, 2:3]
+    near = Xc[:, 2] > 0
+    if near.sum() < cfg.min_inliers:
+        return None
+    old_ids, X_old, uv_old = old_ids[near], X_old[near], uv_old[near]
+    old_desc = index.desc[np.searchsorted(index.desc_ids, old_ids)]
+    allowed = np.linalg.norm(q_uv[:, None, :] - uv_old[None, :, :], axis=2) <= cfg.search_radius_px
+    pairs = match_descriptors(q_desc, old_desc, cfg.max_hamming, cfg.match_ratio, allowed)
+    if len(pairs) < cfg.min_inliers:
+        return None
+    qi, oi = pairs.T
+    X = X_old[oi]
+    pnp = PnPConfig(ransac_threshold_px=cfg.ransac_threshold_px, min_inliers=cfg.min_inliers, iterations=500)
+    res = track_pnp(X, q_uv[qi], tracks.camera.K, None, pnp)
+    if not res.ok:
+        log.debug("frame %d: %d ORB matches to old points, not verified (%s)", frame, len(pairs), res.reason)
+        return None
+    qi, oi = qi[res.inliers], oi[res.inliers]
+    old_frame = int(np.median([index.last[int(t)] for t in old_ids[oi]]))
+    tracked = T_cw[frame]
+    drift = float(np.linalg.norm(_centre(res.T_cw) - _centre(tracked)))
+    path = _path_length(T_cw, old_frame, frame)
+    angle = _angle_deg(res.T_cw[:3, :3] @ tracked[:3, :3].T)
+    if drift > cfg.max_drift * path or angle > cfg.max_drift_deg:
+        log.info(
+            "frame %d: %d matches to frame %d rejected: correction %.3f over a path of %.3f, %.1f deg",
+            frame,
+            len(qi),
+            old_frame,
+            drift,
+            path,
+            angle,
+        )
+        return None
+    new_old = np.stack([q_ids[qi], old_ids[oi]], axis=1).astype(np.int64)
+    return Revisit(frame, res.T_cw, new_old, old_frame, drift)
+
+
+def close_loop(
+    tracks: Tracks,
+    points_w: dict[int, np.ndarray],
+    T_cw: dict[int, np.ndarray],
+    T_cw_frames: dict[int, np.ndarray],
+    revisit: Revisit,
+    index: TrackIndex,
+) -> int:
+    """Correct the drift since the old visit and fuse the revisit's tracks; returns the tracks fused.
+
+    The correction at the revisit frame is the Sim(3) taking the map as tracked to the map as the
+    old points see it (scale from the depths of matched points mapped on both visits); frames
+    and points after the old visit get a fraction of it growing with the frame index, so the
+    trajectory bends smoothly instead of jumping. Poses are changed in place; `tracks.point_track`
+    is renamed in place (the later track continues the old one, as the frontend's re-association does).
+    """
+    f, f0 = revisit.frame, revisit.old_frame
+    scale = _scale_correction(revisit, points_w, T_cw[f])
+    revisit.scale = scale
+    T_wc_loop = np.linalg.inv(revisit.T_cw)
+    R = T_wc_loop[:3, :3] @ T_cw[f][:3, :3]
+    t = scale * T_wc_loop[:3, :3] @ T_cw[f][:3, 3] + T_wc_loop[:3, 3]
+    rotvec = Rotation.from_matrix(R).as_rotvec()
+
+    def part(g: int) -> tuple[np.ndarray, np.ndarray, float]:
+        a = float(np.clip((g - f0) / max(f - f0, 1), 0.0, 1.0))
+        return Rotation.from_rotvec(a * rotvec).as_matrix(), a * t, scale**a
+
+    for poses in (T_cw, T_cw_frames):
+        for g, T in poses.items():
+            if g > f0:
+                Ra, ta, sa = part(g)
+                T2 = np.eye(4)
+                T2[:3, :3] = T[:3, :3] @ Ra.T
+                T2[:3, 3] = sa * T[:3, 3] - T2[:3, :3] @ ta
+                poses[g] = T2
+    born = _first_keyframe(tracks, points_w, T_cw)
+    for tid, g in born.items():
+        if g > f0:
+            Ra, ta, sa = part(g)
+            points_w[tid] = sa * Ra @ points_w[tid] + ta
+    fused = _fuse(tracks, points_w, revisit.pairs, index)
+    log.info(
+        "revisit at frame %d of frame %d: %d tracks fused, drift %.3f (map units), scale %.3f",
+        f,
+        f0,
+        fused,
+        revisit.drift,
+        scale,
+    )
+    return fused
+
+
+def _fuse(tracks: Tracks, points_w: dict[int, np.ndarray], pairs: np.ndarray, index: TrackIndex) -> int:
+    """Rename each new track to its old one (one to one) where their frames do not overlap."""
+    keep, used = [], set()
+    for n, o in pairs.tolist():
+        if n != o and o not in used and index.first.get(n, -1) > index.last.get(o, 1 << 62):
+            keep.append((n, o))
+            used.add(o)
+    if not keep:
+        return 0
+    new, old = np.array(keep, np.int64).T
+    order = np.argsort(new)
+    new, old = new[order], old[order]
+    sel = np.isin(tracks.point_track, new)
+    tracks.point_track[sel] = old[np.searchsorted(new, tracks.point_track[sel])]
+    for n, o in zip(new.tolist(), old.tolist(), strict=True):
+        points_w.pop(n, None)
+        index.last[o] = index.last.pop(n)
+        index.first.pop(n, None)
+    return len(new)
+
+
+def _scale_correction(revisit: Revisit, points_w: dict[int, np.ndarray], T_cw_now: np.ndarray) -> float:
+    """Median ratio of old to new depths of the matched points mapped on both visits (1 if under 8)."""
+    both = [(n, o) for n, o in revisit.pairs.tolist() if n in points_w and o in points_w]
+    if len(both) < 8:
+        return 1.0
+    new = np.array([points_w[n] for n, _ in both])
+    old = np.array([points_w[o] for _, o in both])
+    d_new = new @ T_cw_now[2, :3] + T_cw_now[2, 3]
+    d_old = old @ revisit.T_cw[2, :3] + revisit.T_cw[2, 3]
+    ok = (d_new > 0) & (d_old > 0)
+    return float(np.median(d_old[ok] / d_new[ok])) if ok.sum() >= 8 else 1.0
+
+
+def _first_keyframe(
+    tracks: Tracks, points_w: dict[int, np.ndarray], T_cw: dict[int, np.ndarray]
+) -> dict[int, int]:
+    """The first keyframe that observes each mapped point."""
+    sel = np.isin(tracks.point_frame, np.fromiter(T_cw, np.int64, len(T_cw)))
+    sel &= np.isin(tracks.point_track, np.fromiter(points_w, np.int64, len(points_w)))
+    uniq, inv = np.unique(tracks.point_track[sel], return_inverse=True)
+    first = np.full(len(uniq), np.iinfo(np.int64).max)
+    np.minimum.at(first, inv, tracks.point_frame[sel])
+    return dict(zip(uniq.tolist(), first.tolist(), strict=True))
+
+
+def _centre(T_cw: np.ndarray) -> np.ndarray:
+    return -T_cw[:3, :3].T @ T_cw[:3, 3]
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _path_length(T_cw: dict[int, np.ndarray], f0: int, f1: int) -> float:
+    """Length of the keyframe path from frame f0 to f1."""
+    c = np.array([_centre(T_cw[g]) for g in sorted(T_cw) if f0 <= g <= f1])
+    return float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum()) if len(c) > 1 else 0.0
