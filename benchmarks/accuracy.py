@@ -8,6 +8,8 @@ time) and writes benchmarks/results/accuracy.json.
 
     .venv/bin/python benchmarks/accuracy.py                       # everything (long)
     .venv/bin/python benchmarks/accuracy.py --scenes corridor --seconds 8 --variants full,points-only
+    .venv/bin/python benchmarks/accuracy.py --scenes corridor --seconds 35 --noise 1 \
+        --variants full,no-revisit --out benchmarks/results/accuracy_loop.json   # one whole loop
 """
 
 from __future__ import annotations
@@ -77,6 +79,7 @@ def main() -> int:
     ap.add_argument("--variants", default=",".join(PRESETS))
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/papl_accuracy"))
+    ap.add_argument("--out", type=Path, default=OUT, help="results JSON")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
@@ -129,8 +132,8 @@ def main() -> int:
                         f"{_f(row['map_s'], 6, 1)}"
                     )
     if not args.no_write:
-        OUT.parent.mkdir(parents=True, exist_ok=True)
-        OUT.write_text(
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(
             json.dumps(
                 {
                     "benchmark": "accuracy",
@@ -148,7 +151,7 @@ def main() -> int:
                 default=float,
             )
         )
-        print("wrote", OUT)
+        print("wrote", args.out)
     return 0
 
 

@@ -88,4 +88,5 @@ PRESETS: dict[str, list[str]] = {
     "no-vp-refinement": ["frontend.vp.refine_svd=false"],
     "points-only": ["variant.lines=none"],
     "orthonormal-lines": ["variant.lines=orthonormal"],
+    "no-revisit": ["mapping.revisit.enabled=false"],
 }

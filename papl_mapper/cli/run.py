@@ -34,7 +34,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--preset",
         default="full",
         help="ablation preset: full, hard-association, no-axis-management, "
-        "no-vertical-prior, no-vp-refinement, points-only, orthonormal-lines",
+        "no-vertical-prior, no-vp-refinement, points-only, orthonormal-lines, no-revisit",
     )
     p.add_argument("--config", type=Path, help="TOML file with RunConfig fields")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
