@@ -201,7 +201,7 @@ class Map:
             "metadata": self.metadata,
         }
         with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED) as zf:
-            zf.writestr("meta.json", json.dumps(meta, indent=1, default=_json_default))
+            zf.writestr("meta.json", json.dumps(meta, indent=1, default=json_default))
             for name, arr in _arrays(self).items():
                 with zf.open(f"{name}.npy", "w", force_zip64=True) as out:
                     np.lib.format.write_array(out, np.ascontiguousarray(arr), allow_pickle=False)
@@ -474,11 +474,12 @@ def _read_npy(fh: Any) -> np.ndarray:
     return arr.T if fortran else arr
 
 
-def _json_default(o: Any) -> Any:
+def json_default(o: Any) -> Any:
+    """`json.dumps(default=...)` for numpy arrays and scalars and paths."""
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, Path):
         return str(o)
-    raise TypeError(f"cannot store {type(o).__name__} in map metadata")
+    raise TypeError(f"cannot store {type(o).__name__} as JSON")

@@ -33,7 +33,7 @@ from papl_mapper.frontend import FrontendStats, process
 from papl_mapper.frontend.camera import camera_for_recording
 from papl_mapper.frontend.video import open_recording
 from papl_mapper.geometry.triangulation import observation_planes
-from papl_mapper.map import Axes, Map
+from papl_mapper.map import Axes, Map, json_default
 from papl_mapper.mapping.assemble import (
     assemble_map,
     cull_observations,
@@ -144,7 +144,7 @@ def run(
         with timer.stage("frontend"), progress("frontend") as cb:
             tracks = process(rec, cam_src.camera, cfg.frontend, progress=cb, stats=fstats)
         (ckpt / "frontend.json").parent.mkdir(exist_ok=True)
-        _atomic_text(ckpt / "frontend.json", json.dumps(dataclasses.asdict(fstats), default=_json_default))
+        _atomic_text(ckpt / "frontend.json", json.dumps(dataclasses.asdict(fstats), default=json_default))
         ckpt.mkdir(exist_ok=True)
         tracks.save(tracks_file)
         key_file.write_text(key)
@@ -416,21 +416,13 @@ def _write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary:
     write_tum(out / "trajectory.tum", traj)
     write_tum(out / "keyframes.tum", Trajectory(m.keyframes.timestamp, m.keyframes.T_wc, "keyframes"))
     _atomic_text(out / "config.toml", dump_toml(config_to_dict(cfg)))
-    _atomic_text(out / "summary.json", json.dumps(summary, indent=1, default=_json_default))
+    _atomic_text(out / "summary.json", json.dumps(summary, indent=1, default=json_default))
     m.save(out / "map.papl")
 
 
 def _atomic_text(path: Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 __all__ = ["RunConfig", "RunResult", "frame_trajectory", "map_tracks", "run"]
