@@ -35,9 +35,10 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "line_representations.json"
 DATA = ROOT.parent / "shared" / "data"
 REPS = ("2-p", "4-p", "3-p", "3-p-paper", "3-p-paper-est")
-"""3-p: ours, the shared axis plus (inverse depth, sideways offset) per line, anchored on the current
-estimate (2n + 2 parameters); 3-p-paper: the paper's n + 2 (inverse depth on the ray through the observed
-midpoint in the reference keyframe); 3-p-paper-est: n + 2 on the ray through the current estimate."""
+"""3-p: ours, the shared axis plus (inverse depth, sideways offset in px) per line, starting on the ray
+through the observed midpoint in the reference keyframe and free to leave it (2n + 2 parameters);
+3-p-paper: the paper's n + 2 (inverse depth on that ray only); 3-p-paper-est: n + 2 on the ray through
+the current estimate."""
 PAPER = {  # Table "Results on Synthetic Data" of the PAPL paper
     "fixed": {"time": (0.956, 1.097, 0.251), "error_l": (0.014, 0.006, 0.009), "trans": (0, 0, 0)},
     "small": {

@@ -14,7 +14,7 @@ from papl_mapper import geometry as geo  # noqa: E402
 from papl_mapper.backend import BAConfig, global_ba, local_ba  # noqa: E402
 from papl_mapper.backend.ba import _build_graph  # noqa: E402
 from papl_mapper.backend.factors import _dim  # noqa: E402
-from papl_mapper.backend.problem import build_problem  # noqa: E402
+from papl_mapper.backend.problem import build_problem, uses_offset  # noqa: E402
 from papl_mapper.backend.synthetic import SceneSpec, errors, make_scene, perturb  # noqa: E402
 from papl_mapper.errors import GeometryError, MapFormatError  # noqa: E402
 from papl_mapper.map import LineState  # noqa: E402
@@ -55,6 +55,8 @@ def test_custom_factor_jacobians(truth, offset):
     """Every custom factor (anchored with two soft axes, temporary-VP, orthonormal, axis and scale priors),
     in the Huber region too, against central differences in gtsam's own retractions; anchored and
     temporary-VP lines with the sideways offset (r, s) and in the paper's form (r)."""
+    if offset:
+        assert uses_offset(BAConfig(anchor_offset=True, tvp_offset=True), "temporary_vp")
     m = perturb(truth, **START)
     m.lines.state[:2] = LineState.TEMPORARY_VP
     anchored = np.flatnonzero(m.lines.state == LineState.ANCHORED)
@@ -63,7 +65,8 @@ def test_custom_factor_jacobians(truth, offset):
     w[anchored[0]] = 0.0
     w[anchored[0], a0], w[anchored[0], (a0 + 1) % 3] = 0.7, 0.3
     m.lines.obs_xy[:5] += 8.0  # large residuals: Huber active
-    cfg = BAConfig(huber_k=1e9, anchor_offset=offset)  # Huber linearises as IRLS, not as this derivative
+    # Huber linearises as IRLS (checked below), not as this derivative
+    cfg = BAConfig(huber_k=1e9, anchor_offset=offset, tvp_offset=offset)
     pb = build_problem(m, cfg)
     g = _build_graph(m, pb, cfg)
     vals = g.values
@@ -165,7 +168,7 @@ def test_temporary_vp_and_orthonormal_lines_converge(truth):
     m.lines.state[:] = np.where(np.arange(len(m.lines)) % 2, LineState.TEMPORARY_VP, LineState.ORTHONORMAL)
     res = global_ba(m, _cfg())
     assert res.n_variables["lines_temporary_vp"] > 5 and res.n_variables["lines_orthonormal"] > 5
-    assert res.line_params["temporary_vp"] == 4 * res.n_variables["lines_temporary_vp"]
+    assert res.line_params["temporary_vp"] == 3 * res.n_variables["lines_temporary_vp"]
     assert res.line_params["orthonormal"] == 4 * res.n_variables["lines_orthonormal"]
     err = errors(res.map, truth)
     assert err["ate_rmse"] < NOISE_FREE["ate_rmse"] and err["line_angle_deg"] < 0.5

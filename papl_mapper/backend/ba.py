@@ -36,7 +36,15 @@ from papl_mapper.backend.factors import (
 )
 from papl_mapper.backend.linebatch import KIND_FIXDIR, LineBatch
 from papl_mapper.backend.lm import LevenbergMarquardt
-from papl_mapper.backend.problem import KIND_ANCHORED, KIND_ORTHO, KIND_TVP, LineGroup, Problem, build_problem
+from papl_mapper.backend.problem import (
+    KIND_ANCHORED,
+    KIND_ORTHO,
+    KIND_TVP,
+    LineGroup,
+    Problem,
+    build_problem,
+    uses_offset,
+)
 from papl_mapper.errors import GeometryError, OptimizationError
 from papl_mapper.map import Map
 
@@ -70,7 +78,7 @@ class BAResult:
     n_observations: dict[str, int]
     line_params: dict[str, int]
     """Optimised line parameters: anchored 2n (n with BAConfig.anchor_offset off, the paper's count) + 2 per
-    optimised axis, temporary-VP 4n (3n), orthonormal 4n."""
+    optimised axis, temporary-VP 3n (4n with BAConfig.tvp_offset), orthonormal 4n."""
     dropped: dict[str, int] = field(default_factory=dict)
     lm_linearize_s: float = 0.0
     """Total seconds in linearisation during the optimisation."""
@@ -175,7 +183,7 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
                 values.insert(U(i), gtsam.Rot3(Urot))
                 values.insert(W(i), np.array([phi]))
             else:
-                if config.anchor_offset:
+                if uses_offset(config, kind):
                     values.insert(RS(kind, i), np.array([grp.inv_depth[i], 0.0]))
                 else:
                     values.insert(R(kind, i), np.array([grp.inv_depth[i]]))
@@ -193,7 +201,7 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
                 config.line_sigma_px,
                 config.huber_k,
                 config.line_factor,
-                config.anchor_offset,
+                uses_offset(config, kind),
             )
             for f in batch.make_factors():
                 graph.add(f)
@@ -214,8 +222,9 @@ class _State:
 
 
 def _state(
-    m: Map, pb: Problem, values: gtsam.Values, batches: dict | None = None, offset: bool = False
+    m: Map, pb: Problem, values: gtsam.Values, batches: dict | None = None, config: BAConfig | None = None
 ) -> _State:
+    config = config or BAConfig()
     T = m.keyframes.T_wc.copy()
     held = pb.kf_fixed.copy()  # held poses keep their exact input values (the prior lets them drift 1e-14)
     if pb.gauge is not None:
@@ -244,7 +253,7 @@ def _state(
                 v = np.array([values.atUnit3(D(i)).point3() for i in range(n)]).reshape(-1, 3)
             else:
                 v = axes[np.argmax(grp.weights, axis=1)] if n else np.zeros((0, 3))
-            if offset:
+            if config is not None and uses_offset(config, kind):
                 rs = np.array([values.atVector(RS(kind, i)) for i in range(n)]).reshape(n, 2)
                 r = rs[:, 0]
                 L = (
@@ -287,7 +296,7 @@ def _rms(m: Map, pb: Problem, st: _State) -> dict[str, float]:
 def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0: float) -> BAResult:
     g = _build_graph(m, pb, config)
     setup_s = time.perf_counter() - t0
-    init_state = _state(m, pb, g.values, g.batches, config.anchor_offset)
+    init_state = _state(m, pb, g.values, g.batches, config)
     initial_rms = _rms(m, pb, init_state)
     optimizer = LevenbergMarquardt(g.graph, g.values, config.lambda_initial)
     initial_cost = optimizer.error
@@ -334,7 +343,7 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
         solve_s = time.perf_counter() - ts
     except RuntimeError:  # hard-constraint (fixed pose) factors do not solve by Cholesky: no figure
         solve_s = float("nan")
-    st = _state(m, pb, values, g.batches, config.anchor_offset)
+    st = _state(m, pb, values, g.batches, config)
     final_rms = _rms(m, pb, st)
     out = _write_back(m, pb, st)
     _check_finite(out, pb)
@@ -366,9 +375,10 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
             KIND_ANCHORED: (
                 2 * n_lines[KIND_ANCHORED]
                 if config.structural_lines == KIND_FIXDIR
-                else (2 if config.anchor_offset else 1) * n_lines[KIND_ANCHORED] + 2 * n_axes_var
+                else (2 if uses_offset(config, KIND_ANCHORED) else 1) * n_lines[KIND_ANCHORED]
+                + 2 * n_axes_var
             ),
-            KIND_TVP: (4 if config.anchor_offset else 3) * n_lines[KIND_TVP],
+            KIND_TVP: (4 if uses_offset(config, KIND_TVP) else 3) * n_lines[KIND_TVP],
             KIND_ORTHO: 4 * n_lines[KIND_ORTHO],
         },
         dropped=dict(pb.dropped),

@@ -47,12 +47,14 @@ class BAConfig:
     the current line estimate nearest that midpoint (as good as the estimate, e.g. a multi-view
     triangulation; a poor estimate's error stays)."""
     anchor_offset: bool = True
-    """Anchored and temporary-VP lines get a second parameter: the anchor's sideways shift across the line
-    in the reference image (pixels), besides the paper's inverse depth. The paper's form (False: n + 2
-    parameters per axis) holds each line on one ray through a single observation, so it can only slide in
-    depth and keeps that observation's noise; with the offset (2n + 2, the minimal count for lines parallel
-    to a known direction) the line fits all its views and the anchor is re-made on the current estimate
-    at every BA. Measured in benchmarks/line_representations.py."""
+    """Anchored lines get a second parameter: the anchor's sideways shift across the line in the reference
+    image (pixels), besides the paper's inverse depth. The paper's form (False: n + 2 parameters per axis)
+    holds each line on one ray through a single observation, so it can only slide in depth and keeps that
+    observation's noise; with the offset (2n + 2, the minimal count for lines parallel to a known direction)
+    the line fits all its views. Measured in benchmarks/line_representations.py."""
+    tvp_offset: bool = False
+    """With anchor_offset, also give temporary-VP lines the offset (then 4 parameters, a general line); off
+    keeps the paper's 3-parameter first stage (measured on the demo: the offset there cost ATE)."""
     optimize_poses: bool = True
     """False holds every keyframe pose at its value (e.g. the fixed-pose experiment)."""
     optimize_axes: bool = True

@@ -95,6 +95,11 @@ def _distinct_views(owner: np.ndarray, kf: np.ndarray, n: int) -> np.ndarray:
     return np.bincount(pairs[:, 0], minlength=n)
 
 
+def uses_offset(config: BAConfig, kind: str) -> bool:
+    """Whether lines of this kind carry the sideways anchor offset (r, s) instead of the paper's r."""
+    return config.anchor_offset and (kind == KIND_ANCHORED or (kind == KIND_TVP and config.tvp_offset))
+
+
 def build_problem(m: Map, config: BAConfig, window: np.ndarray | None = None) -> Problem:
     """Choose variables and observations. `window` (keyframe rows) restricts BA to a local window:
     landmarks seen there are optimised, other keyframes seeing them are held fixed."""
@@ -285,20 +290,24 @@ def _build_lines(
     stored = np.full(M, -1, np.int64)
     has_ref = lines.ref_keyframe_id >= 0
     stored[has_ref] = _rows_of(m.keyframes.ids, lines.ref_keyframe_id[has_ref])
-    # With the sideways offset the anchor is re-made on the current estimate at every BA (the offset, not a
-    # fixed ray, lets the line move): the observed midpoint moved onto the current line's image, so its ray
-    # meets the current line and (r, s = 0) reproduces it exactly.
+    # The anchor's ray goes through the observed segment midpoint in the reference keyframe (the paper) or,
+    # with anchor_bearing "estimate", through the foot of that midpoint on the current line's image (its ray
+    # meets the current line). Lines with the sideways offset can leave that ray (q: across the segment).
     anchor_xy = o_xy
-    q_all = np.zeros((len(o_xy), 3))
-    if (config.anchor_bearing == "estimate" or config.anchor_offset) and len(o_xy):
-        # the observed midpoint moved onto the current line's image: the ray then meets the current line
-        l = geo.project_line(K, geo.plucker_to_camera(L0[o_row], T[o_kf]))
+    offset_line = np.array([uses_offset(config, KIND_TVP), uses_offset(config, KIND_ANCHORED)])[
+        np.clip(kind - 1, 0, 1)
+    ] & (kind >= 1)
+    seg_px = np.cross(
+        np.concatenate([o_xy[:, :2], np.ones((len(o_xy), 1))], 1),
+        np.concatenate([o_xy[:, 2:], np.ones((len(o_xy), 1))], 1),
+    )
+    if config.anchor_bearing == "estimate" and len(o_xy):
+        seg_px = geo.project_line(K, geo.plucker_to_camera(L0[o_row], T[o_kf]))
         mid = (o_xy[:, :2] + o_xy[:, 2:]) / 2.0
-        s2 = np.maximum(np.sum(l[:, :2] ** 2, 1), 1e-300)
-        foot = mid - ((np.sum(l[:, :2] * mid, 1) + l[:, 2]) / s2)[:, None] * l[:, :2]
+        s2 = np.maximum(np.sum(seg_px[:, :2] ** 2, 1), 1e-300)
+        foot = mid - ((np.sum(seg_px[:, :2] * mid, 1) + seg_px[:, 2]) / s2)[:, None] * seg_px[:, :2]
         anchor_xy = np.concatenate([foot, foot], 1)
-        if config.anchor_offset:
-            q_all = geo.anchor_offset_direction(l, K)
+    q_all = np.where(offset_line[o_row, None], geo.anchor_offset_direction(seg_px, K), 0.0)
     b_all, r_all, sin_all = geo.anchor_from_observation(anchor_xy, K, T[o_kf], L0[o_row])
     b_obs, _, _ = geo.anchor_from_observation(o_xy, K, T[o_kf], L0[o_row]) if len(o_xy) else (b_all, 0, 0)
     cand = needs_ref[o_row] & np.isfinite(r_all) & (r_all > 0)
