@@ -329,6 +329,8 @@ def diagnose(folder: Path, tracks_path: Path, overrides: list[str], dump: Path |
         table[f"line placed ({100 * r:g}%)"] = float(w[row].sum() / total)
     for r, t in zip(REL_TAUS, taus, strict=True):
         table[f"3D recall ({100 * r:g}%)"] = float(w[d3 <= t].sum() / total)
+    for r, t in zip(REL_TAUS, taus, strict=True):  # the recall a metric over the seen GT would give
+        table[f"3D recall of visible ({100 * r:g}%)"] = float(w[visible & (d3 <= t)].sum() / w[visible].sum())
     by_axis = {}
     for a in np.unique(gt.segments.axis[gt.segments.lengths() > 0]):
         sel = gt.segments.axis[gt.segments.lengths() > 0][owner] == a
@@ -471,9 +473,9 @@ def _print(res: dict) -> None:
     print(f"\n== {res['scene']}  (ATE {100 * res['ate_rel_path']:.3f}% of path, map {res['map_s']} s)")
     print("GT-detecting tracks lost:", res["gt_tracks_lost"])
     print("line counts:", ", ".join(f"{k} {v}" for k, v in res["n_lines"].items()))
-    print(f"{'recall stage':<26}{'GT length share':>16}")
+    print(f"{'recall stage':<30}{'GT length share':>16}")
     for k, v in res["recall_stages"].items():
-        print(f"{k:<26}{v:>16.3f}")
+        print(f"{k:<30}{v:>16.3f}")
     if res["recall_pre_ba_lines"]:
         print("recall of the lines before BA:", res["recall_pre_ba_lines"])
     if res["gt_pose_triangulation"]:

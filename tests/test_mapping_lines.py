@@ -8,6 +8,7 @@ from papl_mapper.geometry.triangulation import observation_planes
 from papl_mapper.map import Camera
 from papl_mapper.mapping.lines import (
     LineInitConfig,
+    dominant_directions,
     endpoint_extent,
     line_through_planes,
     reprojection_rms,
@@ -165,3 +166,35 @@ def test_vp_image_angle():
     h = np.array([c * h[0] - s_ * h[1], s_ * h[0] + c * h[1]])
     rot = np.concatenate([m - h, m + h])[None]
     assert abs(vp_image_angle_deg(T[k : k + 1], rot, CAM.K, np.array([0.0, 0.0, 1.0]))[0] - 5.0) < 1e-3
+
+
+def test_dominant_directions():
+    """Directions that many rows share, densest first, sign-invariant; rare and NaN rows ignored."""
+    rng = np.random.default_rng(3)
+    axes = np.array([[0.0, 0.0, 1.0], [np.cos(0.3), np.sin(0.3), 0.0]])
+    rows = np.concatenate(
+        [
+            axes[0] + rng.normal(0, 0.005, (300, 3)),
+            -(axes[1] + rng.normal(0, 0.005, (150, 3))),  # opposite sign, same axis
+            rng.normal(0, 1, (5, 3)),  # scattered: under min_share each
+            np.full((20, 3), np.nan),
+        ]
+    )
+    got = dominant_directions(rows, gate_deg=2.0, min_share=0.05)
+    assert got.shape == (2, 3)
+    assert np.degrees(np.arccos(np.clip(np.abs(np.sum(got * axes, axis=1)), 0, 1))).max() < 0.2
+    assert dominant_directions(np.full((4, 3), np.nan)).shape == (0, 3)
+
+
+def test_weakly_classified_track_takes_the_common_direction():
+    """A track classified once, to a direction 5 degrees off, is anchored to the direction most views
+    share when its segments line up with that one's vanishing points."""
+    segs, track, T, xy, vp = _scene()
+    vp = vp.copy()
+    view = np.arange(len(track)) // 20
+    off = np.array([np.sin(np.radians(5.0)), 0.0, np.cos(np.radians(5.0))])
+    vp[(track == 0) & (view > 0)] = np.nan
+    vp[(track == 0) & (view == 0)] = off  # one wrong classification of a vertical segment
+    est = triangulate_lines(track, T, xy, vp, CAM.K, LineInitConfig(min_vp_fraction=0.7))
+    assert 0 in est.track.tolist()
+    assert _endpoint_error(est.endpoints_w, segs[est.track]).max() < EXACT_TOL

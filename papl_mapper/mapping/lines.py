@@ -23,10 +23,12 @@ log = logging.getLogger(__name__)
 class LineInitConfig:
     """Thresholds of line triangulation."""
 
-    min_views: int = 2
-    """Fewest keyframe observations of a segment track."""
-    min_plane_angle_deg: float = 2.0
-    """Smallest angle between two observation planes: below it the depth is not observable."""
+    min_views: int = 5
+    """Fewest observations of a segment track (frames or keyframes, as triangulated): lines from 2-4
+    views are mostly texture edges (10 s scenes: precision +0.04-0.06 at 1%, recall -0.006..+0.001)."""
+    min_plane_angle_deg: float = 1.0
+    """Smallest angle between two observation planes: below it the depth is not observable (2 degrees
+    lost 56 of 194 ground-truth tracks of the 10 s corridor; 1 degree gains 0.04 recall there)."""
     max_error_px: float = 3.0
     """Largest endpoint-to-line reprojection error of an accepted line (RMS over its views)."""
     min_ray_angle_deg: float = 5.0
@@ -35,14 +37,14 @@ class LineInitConfig:
     """Longest accepted segment, as a multiple of its midpoint's median distance to the cameras."""
     vp_direction_spread_deg: float = 3.0
     """Largest spread of a track's world vanishing directions for the direction to be trusted."""
-    min_vp_fraction: float = 0.0
+    min_vp_fraction: float = 0.7
     """Fewest of a track's observations classified to a vanishing direction, as a fraction, for the
     track to count as structural; the map holds structural lines, texture edges are left out (on the
     10 s corridor they are 2/3 of the line length at precision 0.13). 0 keeps every track."""
     max_vp_angle_deg: float = 1.0
-    """A track classified in fewer views than that is structural all the same when the median image
-    angle between its segments and the lines to its vanishing point is below this (the frontend
-    leaves 10-20% of the views of structural segments unclassified)."""
+    """A track classified in fewer views than that is structural all the same when the image angle
+    between its segments and the lines to its vanishing point, averaged weighted by segment length,
+    is below this (the frontend leaves 10-20% of the views of structural segments unclassified)."""
 
 
 @dataclass
@@ -153,6 +155,8 @@ def triangulate_lines(
     non-structural ones; a track whose directions agree uses their mean as its direction.
     """
     cfg = config or LineInitConfig()
+    # the world directions most observations were classified to: candidates for weakly classified tracks
+    common = dominant_directions(vp_dir_w) if cfg.min_vp_fraction > 0 else np.zeros((0, 3))
     order = np.argsort(track, kind="stable")
     track, T_wc, xy, vp_dir_w = track[order], T_wc[order], xy[order], vp_dir_w[order]
     starts = np.flatnonzero(np.r_[True, track[1:] != track[:-1]]) if len(track) else np.zeros(0, int)
@@ -170,9 +174,14 @@ def triangulate_lines(
             reasons[why] = reasons.get(why, 0) + 1
             continue
         d, from_vp = _track_direction(vp_dir_w[s:e], cfg)
-        if cfg.min_vp_fraction > 0 and not _structural(T_wc[s:e], xy[s:e], K, vp_dir_w[s:e], d, cfg):
-            reasons["not structural"] = reasons.get("not structural", 0) + 1
-            continue
+        if cfg.min_vp_fraction > 0 and np.isfinite(vp_dir_w[s:e, 0]).mean() < cfg.min_vp_fraction:
+            d = _aligned_direction(
+                T_wc[s:e], xy[s:e], K, common if d is None else np.vstack([d, common]), cfg
+            )
+            if d is None:
+                reasons["not structural"] = reasons.get("not structural", 0) + 1
+                continue
+            from_vp = True
         track_planes = planes[s:e] if d is None else planes_through_direction(T_wc[s:e], xy[s:e], K, d)
         p, d = line_through_planes(track_planes, T_wc[s:e, :3, 3], d)
         rms = reprojection_rms(p, d, T_wc[s:e], xy[s:e], K)
@@ -214,19 +223,52 @@ def vp_image_angle_deg(T_wc: np.ndarray, xy: np.ndarray, K: np.ndarray, d_w: np.
     return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
 
 
-def _structural(
-    T_wc: np.ndarray,
-    xy: np.ndarray,
-    K: np.ndarray,
-    dirs: np.ndarray,
-    d: np.ndarray | None,
-    cfg: LineInitConfig,
-) -> bool:
-    """A track is structural when enough of its views were classified to a vanishing direction, or
-    when its segments line up with the vanishing point of the direction the classified ones agree on."""
-    if np.isfinite(dirs[:, 0]).mean() >= cfg.min_vp_fraction:
-        return True
-    return d is not None and float(np.median(vp_image_angle_deg(T_wc, xy, K, d))) <= cfg.max_vp_angle_deg
+def _aligned_direction(
+    T_wc: np.ndarray, xy: np.ndarray, K: np.ndarray, candidates: np.ndarray, cfg: LineInitConfig
+) -> np.ndarray | None:
+    """The candidate world direction whose vanishing points a track's segments line up with best, if
+    their image angle (averaged weighted by segment length: long segments give the surer angles) is
+    within `max_vp_angle_deg`; None when none is. This decides whether a weakly classified track is
+    structural: on the 10 s scenes it keeps 96% of the ground-truth tracks' length and drops 71-95%
+    of the texture tracks' (a median angle drops 62-94%)."""
+    if len(candidates) == 0:
+        return None
+    w = np.maximum(np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1), 1e-9)
+    angle = np.array([np.average(vp_image_angle_deg(T_wc, xy, K, c), weights=w) for c in candidates])
+    best = int(np.argmin(angle))
+    return candidates[best] if angle[best] <= cfg.max_vp_angle_deg else None
+
+
+def dominant_directions(
+    dirs: np.ndarray, gate_deg: float = 2.0, min_share: float = 0.02, max_count: int = 8, sample: int = 2000
+) -> np.ndarray:
+    """(k, 3) unit directions that at least `min_share` of the finite rows of `dirs` (n, 3) lie within
+    `gate_deg` of (sign-invariant), densest first: the scene's axes as the observations saw them."""
+    D = dirs[np.isfinite(dirs).all(axis=1)]
+    if len(D) == 0:
+        return np.zeros((0, 3))
+    D = D / np.linalg.norm(D, axis=1, keepdims=True)
+    seeds = D[np.random.default_rng(0).choice(len(D), min(len(D), sample), replace=False)]
+    cos_gate = np.cos(np.radians(gate_deg))
+    near = np.abs(seeds @ seeds.T) > cos_gate  # (s, s)
+    alive, alive_s = np.ones(len(D), bool), np.ones(len(seeds), bool)
+    out: list[np.ndarray] = []
+    while len(out) < max_count and alive_s.any():
+        counts = (near & alive_s[None, :]).sum(axis=1) * alive_s
+        c = seeds[int(np.argmax(counts))]
+        for _ in range(3):  # re-centre on the members
+            members = alive & (np.abs(D @ c) > cos_gate)
+            if not members.any():
+                break
+            m = (D[members] * np.sign(D[members] @ c)[:, None]).sum(axis=0)
+            c = m / np.linalg.norm(m)
+        members = alive & (np.abs(D @ c) > cos_gate)
+        if members.sum() < max(1, min_share * len(D)):
+            break
+        out.append(c)
+        alive &= ~members
+        alive_s &= np.abs(seeds @ c) <= cos_gate
+    return np.array(out).reshape(-1, 3)
 
 
 def _track_direction(dirs: np.ndarray, cfg: LineInitConfig) -> tuple[np.ndarray | None, bool]:
