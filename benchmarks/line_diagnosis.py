@@ -495,27 +495,60 @@ def _print(res: dict) -> None:
     )
 
 
+#: The line triangulation settings before the structural-lines change (commit 737daa0), for --before.
+BEFORE = ["lines.min_vp_fraction=0", "lines.min_views=2", "lines.min_plane_angle_deg=2"]
+
+
+def _summary_table(pairs: list[tuple[dict, dict | None]]) -> None:
+    """Recall / precision / ATE per scene, before and after, at every threshold."""
+    print(
+        f"\n{'scene':<22}{'run':<8}{'ATE %path':>10}"
+        + "".join(f"{'R' + k:>8}{'P' + k:>8}" for k in ("0.5%", "1%", "2%"))
+    )
+    for after, before in pairs:
+        for name, r in (("before", before), ("after", after)):
+            if r is None:
+                continue
+            row = f"{r['scene']:<22}{name:<8}{100 * r['ate_rel_path']:>10.3f}"
+            for k in ("0.5%", "1%", "2%"):
+                row += f"{r['eval_recall'][k]:>8.3f}{r['eval_precision'][k]:>8.3f}"
+            print(row)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("pairs", nargs="+", help="GT_FOLDER=TRACKS.npz")
     ap.add_argument("--set", action="append", default=[], help="RunConfig override key=value")
+    ap.add_argument("--before", action="store_true", help=f"also run each scene with {' '.join(BEFORE)}")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--dump", help="folder for per-line arrays (npz) for further analysis")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
-    results = []
+    results, befores, pairs = [], [], []
     for pair in args.pairs:
         folder, tracks = pair.split("=", 1)
         if not Path(folder).is_dir() or not Path(tracks).is_file():
             print(f"skip {pair}: missing", file=sys.stderr)
             continue
+        before = None
+        if args.before:
+            before = diagnose(Path(folder), Path(tracks), BEFORE + args.set)
+            print("\n-- before:", " ".join(BEFORE))
+            _print(before)
+            befores.append(before)
         dump = Path(args.dump) / f"{Path(folder).name}.npz" if args.dump else None
         res = diagnose(Path(folder), Path(tracks), args.set, dump)
+        print("\n-- after (defaults)" + (f" with {' '.join(args.set)}" if args.set else ""))
         _print(res)
         results.append(res)
+        pairs.append((res, before))
+    _summary_table(pairs)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"machine": machine_info(), "results": results}, indent=1) + "\n")
+    doc = {"machine": machine_info(), "results": results}
+    if befores:
+        doc["before"] = {"overrides": BEFORE, "results": befores}
+    out.write_text(json.dumps(doc, indent=1) + "\n")
     print(f"\nwrote {out}")
     return 0
 
