@@ -92,6 +92,7 @@ def test_all_seeing_the_same_points_leaves_first_pair_and_last():
     assert set(out.T_cw) | set(out.T_cw_frames) == set(range(10))
     assert out.points_w.keys() == reg.points_w.keys()
     assert reg.frames == list(range(10)) and len(reg.T_cw) == 10  # the input is left unchanged
+    assert out.init_frames == reg.init_frames
 
 
 def test_fewer_than_three_other_views_is_not_redundant():

@@ -11,6 +11,7 @@ keyframes, are kept, as are the first keyframe, the initial pair and the last ke
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -164,14 +165,14 @@ def cull_keyframes(
     stats = stats if stats is not None else CullStats()
     frames = np.array(sorted(reg.frames), np.int64)
     stats.keyframes_before = stats.keyframes_after = len(frames)
-    out = Registration(
+    out = dataclasses.replace(  # a copy that keeps every field, with the containers culling changes
+        reg,
         frames=list(frames.tolist()),
         T_cw=dict(reg.T_cw),
         points_w=dict(reg.points_w),
         point_angle=dict(reg.point_angle),
         T_cw_frames=dict(reg.T_cw_frames),
         lost=list(reg.lost),
-        init_frames=reg.init_frames,
     )
     if not cfg.enabled or len(frames) < 3:
         return out
