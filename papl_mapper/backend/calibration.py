@@ -149,8 +149,14 @@ def check_focal(m: Map, config: FocalCheckConfig | None = None) -> FocalCheck:
     f_used = float(math.sqrt(cam.fx * cam.fy))
     if not (math.isfinite(f_used) and f_used > 0):
         raise GeometryError(f"focal check: the map's camera has focal lengths fx={cam.fx}, fy={cam.fy}")
-    windows = _choose_windows(m, config)
-    fits = [fit for rows in windows if (fit := _fit_window(m, rows, f_used, config)) is not None]
+    fits: list[WindowFit] = []
+    for rows in _choose_windows(m, config):
+        # later windows start at the median of the informative ones so far (the prior stays at f_used)
+        known = [w.f for w in fits if w.rel_sigma < config.max_rel_sigma]
+        fit = _fit_window(m, rows, f_used, config, float(np.median(known)) if known else None)
+        if fit is not None:
+            fits.append(fit)
+    fits.sort(key=lambda w: w.first_keyframe_id)
     good = [w for w in fits if w.rel_sigma < config.max_rel_sigma]
     f_est, rel_sigma = _combine(good)
     observable = bool(len(good) >= 1 and rel_sigma < config.max_rel_sigma)
@@ -194,8 +200,8 @@ def _combine(good: list[WindowFit]) -> tuple[float, float]:
 
 
 def _choose_windows(m: Map, config: FocalCheckConfig) -> list[np.ndarray]:
-    """Rows of consecutive keyframes (by id), non-overlapping, those turning most first; all keyframes
-    in one window when there are few."""
+    """Rows of consecutive keyframes (by id), non-overlapping, at most max_windows of those turning most,
+    most turning first; all keyframes in one window when there are few."""
     order = np.argsort(m.keyframes.ids)
     n, w = len(order), max(config.window_keyframes, 2)
     if n < config.min_window_keyframes:
@@ -212,7 +218,7 @@ def _choose_windows(m: Map, config: FocalCheckConfig) -> list[np.ndarray]:
         rel = np.einsum("ji,njk->nik", R[rows[0]], R[rows])  # R0^T R
         spans.append(float(np.max(np.linalg.norm(geo.so3_log(rel), axis=-1))))
     best = np.argsort(spans)[::-1][: config.max_windows]
-    return [order[starts[i] : starts[i] + w] for i in sorted(best)]
+    return [order[starts[i] : starts[i] + w] for i in best]  # most turning first
 
 
 @dataclass
@@ -285,7 +291,9 @@ def _reprojection_px(
     return np.where((z > 0) & np.isfinite(err), err, np.inf)
 
 
-def _fit_window(m: Map, rows: np.ndarray, f_used: float, config: FocalCheckConfig) -> WindowFit | None:
+def _fit_window(
+    m: Map, rows: np.ndarray, f_used: float, config: FocalCheckConfig, f_start: float | None = None
+) -> WindowFit | None:
     data = _select(m, rows, config, config.max_error_px)
     if data is None:
         return None
@@ -293,7 +301,15 @@ def _fit_window(m: Map, rows: np.ndarray, f_used: float, config: FocalCheckConfi
     if np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1).max() <= 0:
         return None  # no translation: no scale gauge, no depths
     res = adjust_focal(
-        T, m.points.xyz[data.pt_rows], data.obs_pt, data.obs_kf, data.obs_uv, m.camera, f_used, config
+        T,
+        m.points.xyz[data.pt_rows],
+        data.obs_pt,
+        data.obs_kf,
+        data.obs_uv,
+        m.camera,
+        f_used,
+        config,
+        f_start=f_start,
     )
     rel = np.einsum("ji,njk->nik", T[0, :3, :3], T[:, :3, :3])
     return WindowFit(
@@ -338,6 +354,7 @@ def adjust_focal(
     f0: float,
     config: FocalCheckConfig | None = None,
     free_f: bool = True,
+    f_start: float | None = None,
 ) -> FocalFit:
     """Bundle-adjust poses T_wc (N,4,4), points xyz (P,3) and one focal length f (fx = fy = f, principal
     point cam.cx, cam.cy held) to observations obs_uv (K,2) of point obs_pt by keyframe obs_kf; f starts
@@ -346,7 +363,8 @@ def adjust_focal(
     # the systems are small (~100 unknowns after the Schur step): BLAS threads only cost here, up to
     # 10x under load (measured with other jobs on the 2 cores)
     with threadpool_limits(limits=1, user_api="blas"):
-        return _adjust_focal(T_wc, xyz, obs_pt, obs_kf, obs_uv, cam, f0, config or FocalCheckConfig(), free_f)
+        cfg = config or FocalCheckConfig()
+        return _adjust_focal(T_wc, xyz, obs_pt, obs_kf, obs_uv, cam, f0, cfg, free_f, f_start)
 
 
 def _adjust_focal(
@@ -359,12 +377,13 @@ def _adjust_focal(
     f0: float,
     config: FocalCheckConfig,
     free_f: bool,
+    f_start: float | None,
 ) -> FocalFit:
     T = np.array(T_wc, np.float64)
     X = np.array(xyz, np.float64)
     N, P = len(T), len(X)
     pp = np.array([cam.cx, cam.cy])
-    f = float(f0)
+    f = float(f0 if f_start is None or not free_f else f_start)
     far = int(np.argmax(np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1)))
     d0 = float(np.linalg.norm(T[far, :3, 3] - T[0, :3, 3]))
     if d0 <= 0:
