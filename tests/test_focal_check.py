@@ -177,3 +177,15 @@ def test_bad_camera_raises():
     m.camera = Camera(640, 480, float("nan"), F_TRUE, 319.5, 239.5)
     with pytest.raises(GeometryError, match="focal"):
         check_focal(m)
+
+
+def test_one_broken_window_does_not_move_the_estimate():
+    """A window stuck at the wrong f (a broken stretch of the map) is outvoted by the median."""
+    from papl_mapper.backend.calibration import WindowFit, _combine
+
+    def win(f: float) -> WindowFit:
+        return WindowFit(0, 20, 300, 3000, 30.0, f, 0.005, 10, 0.5)
+
+    f, rel = _combine([win(456.0), win(458.0), win(366.0), win(457.5), win(455.0)])
+    assert f == pytest.approx(456.0)
+    assert rel < 0.03
