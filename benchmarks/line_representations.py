@@ -144,6 +144,7 @@ def synthetic(seeds: list[int]) -> dict:
                     {
                         **st,
                         "error_l": e["line_error"],
+                        "error_l_median": e["line_error_median"],
                         "trans": e["ate_rmse"],
                         "line_angle_deg": e["line_angle_deg"],
                     }
@@ -154,6 +155,7 @@ def synthetic(seeds: list[int]) -> dict:
                 "time_wall_s": float(np.mean([r["wall_s"] for r in rows[rep]])),
                 "iterations": float(np.mean([r["iterations"] for r in rows[rep]])),
                 "error_l": float(np.mean([r["error_l"] for r in rows[rep]])),
+                "error_l_median": float(np.mean([r["error_l_median"] for r in rows[rep]])),
                 "trans": float(np.mean([r["trans"] for r in rows[rep]])),
                 "line_angle_deg": float(np.mean([r["line_angle_deg"] for r in rows[rep]])),
                 "line_params": rows[rep][0]["line_params"]["anchored"]
@@ -385,6 +387,7 @@ def main() -> None:
         for metric, key in (
             ("time CPU s", "time_cpu_s"),
             ("Error_l", "error_l"),
+            ("Error_l median", "error_l_median"),
             ("Trans. (ATE)", "trans"),
             ("iterations", "iterations"),
             ("line params", "line_params"),
@@ -435,6 +438,7 @@ def main() -> None:
                 x = r[rep]
                 print(
                     f"  {seq:<22} {rep}: ATE {x['ate_rmse']:.4f} m  Error_l {x['line_error']:.4f}  "
+                    f"(median {x['line_error_median']:.4f})  "
                     f"angle {x['line_angle_deg']:.3f} deg  ({x['time_cpu_s']:.2f} s CPU)"
                 )
     result = {

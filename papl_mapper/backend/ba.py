@@ -3,8 +3,10 @@ orthonormal lines and principal axes in one factor graph, solved by Levenberg-Ma
 
 Both functions return a BAResult whose `map` is an optimised deep copy: the input Map is never changed.
 Written back: keyframe poses, point positions, line endpoints (the optimised infinite line clipped to
-its observed extent), `ref_keyframe_id` and `inverse_depth` (1/z of the new segment midpoint in the
-reference keyframe) of anchored and temporary-VP lines, and axis directions.
+its observed extent), `ref_keyframe_id` and `inverse_depth` (1/z of the point of the observed segment
+midpoint's ray in the reference keyframe closest to the optimised line) of anchored and temporary-VP
+lines, and axis directions. Anchored lines are optimised as the shared axis plus (inverse depth, sideways
+offset) per line (BAConfig.anchor_offset; the offset starts at 0 on that ray and is not stored).
 """
 
 from __future__ import annotations
