@@ -82,6 +82,8 @@ def as_representation(m: Map, rep: str) -> tuple[Map, dict]:
         out.lines.state[structural] = LineState.ORTHONORMAL
         return out, {}
     out.lines.state[structural] = LineState.ANCHORED
+    if rep == "3-p":
+        return out, {"anchor_offset": True}
     if rep == "3-p-paper":
         return out, {"anchor_offset": False}
     if rep == "3-p-paper-est":

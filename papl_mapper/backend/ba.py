@@ -5,8 +5,8 @@ Both functions return a BAResult whose `map` is an optimised deep copy: the inpu
 Written back: keyframe poses, point positions, line endpoints (the optimised infinite line clipped to
 its observed extent), `ref_keyframe_id` and `inverse_depth` (1/z of the point of the observed segment
 midpoint's ray in the reference keyframe closest to the optimised line) of anchored and temporary-VP
-lines, and axis directions. Anchored lines are optimised as the shared axis plus (inverse depth, sideways
-offset) per line (BAConfig.anchor_offset; the offset starts at 0 on that ray and is not stored).
+lines, and axis directions. With BAConfig.anchor_offset anchored lines are optimised as the shared axis
+plus (inverse depth, sideways offset) per line (the offset starts at 0 on that ray and is not stored).
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ class BAResult:
     n_variables: dict[str, int]
     n_observations: dict[str, int]
     line_params: dict[str, int]
-    """Optimised line parameters: anchored 2n (n with BAConfig.anchor_offset off, the paper's count) + 2 per
+    """Optimised line parameters: anchored n, the paper's count (2n with BAConfig.anchor_offset) + 2 per
     optimised axis, temporary-VP 3n (4n with BAConfig.tvp_offset), orthonormal 4n."""
     dropped: dict[str, int] = field(default_factory=dict)
     lm_linearize_s: float = 0.0
