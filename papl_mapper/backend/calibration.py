@@ -105,7 +105,8 @@ class FocalCheck:
     observable: bool
     """The walk pins f down to max_rel_sigma or better."""
     plausible: bool
-    """False when the used f is implausible: the caller should warn with `message`."""
+    """False when the used f is implausible (off by more than warn_ratio and n_sigma standard deviations,
+    which a walk pinning f down less than max_rel_sigma can still show): the caller warns with `message`."""
     message: str
     hfov_used_deg: float
     hfov_estimated_deg: float
@@ -168,7 +169,7 @@ def check_focal(m: Map, config: FocalCheckConfig | None = None) -> FocalCheck:
         ratio=ratio,
         rel_sigma=rel_sigma,
         observable=observable,
-        plausible=not (observable and deviates),
+        plausible=not deviates,
         message="",
         hfov_used_deg=hfov_deg(f_used, cam.width),
         hfov_estimated_deg=hfov_deg(f_est, cam.width),
@@ -633,15 +634,15 @@ def _message(r: FocalCheck, n_windows: int) -> str:
     if n_windows == 0:
         return f"focal length not checked: too few keyframes or points seen from several keyframes ({used})"
     est = f"{r.f_estimated:.0f} px +- {100 * r.rel_sigma:.1f}% (hfov {r.hfov_estimated_deg:.1f} deg)"
+    if not r.plausible:
+        return (
+            f"focal length looks wrong: the map was built with {used} but its points support {est} "
+            f"({100 * (r.ratio - 1):+.0f}%); give the camera's intrinsics with --camera FILE or run again "
+            f"without one and with --set hfov_deg={r.hfov_estimated_deg:.1f}"
+        )
     if not r.observable:
         return (
             f"focal length not observable from this walk (it needs turns, not a straight walk): the used "
             f"{used} could not be checked"
         )
-    if r.plausible:
-        return f"focal length plausible: used {used}, the map supports {est}"
-    return (
-        f"focal length looks wrong: the map was built with {used} but its points support {est} "
-        f"({100 * (r.ratio - 1):+.0f}%); give the camera's intrinsics with --camera FILE or run again with "
-        f"--set hfov_deg={r.hfov_estimated_deg:.1f}"
-    )
+    return f"focal length plausible: used {used}, the map supports {est}"
