@@ -156,6 +156,17 @@ def check_focal(m: Map, config: FocalCheckConfig | None = None) -> FocalCheck:
         known = [w.f for w in fits if w.rel_sigma < config.max_rel_sigma]
         fit = _fit_window(m, rows, f_used, config, float(np.median(known)) if known else None)
         if fit is not None:
+            log.debug(
+                "focal check: window from keyframe %d (%d keyframes, %d points, turning %.1f deg): "
+                "f %.1f px +- %.2f%% after %d iterations",
+                fit.first_keyframe_id,
+                fit.n_keyframes,
+                fit.n_points,
+                fit.rotation_deg,
+                fit.f,
+                100 * fit.rel_sigma,
+                fit.iterations,
+            )
             fits.append(fit)
     fits.sort(key=lambda w: w.first_keyframe_id)
     good = [w for w in fits if w.rel_sigma < config.max_rel_sigma]
