@@ -137,6 +137,7 @@ def main() -> None:
     ap.add_argument("--variants", default="cull,base", help="cull (redundant keyframes culled), base")
     ap.add_argument("--work", default="/tmp/memory_long", help="folder for the runs' outputs")
     ap.add_argument("--reuse-frontend", action="store_true", help="later variants resume the first's tracks")
+    ap.add_argument("--frontend-from", help="run folder whose frontend checkpoint every variant resumes")
     ap.add_argument("--results", default=str(RESULTS), help="JSON to write (runs of other lengths are kept)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--variant", help=argparse.SUPPRESS)
@@ -160,8 +161,11 @@ def main() -> None:
             shutil.rmtree(out, ignore_errors=True)
             out.mkdir(parents=True)
             resume = False
+            source = Path(args.frontend_from) if args.frontend_from else None
             if args.reuse_frontend and first_out is not None:
-                shutil.copytree(first_out / ".checkpoint", out / ".checkpoint")
+                source = first_out
+            if source is not None:
+                shutil.copytree(source / ".checkpoint", out / ".checkpoint")
                 resume = True
             cmd = [sys.executable, __file__, "--child", "--recording", str(rec), "--variant", variant]
             cmd += ["--end", str(end), "--out", str(out)] + (["--resume"] if resume else [])
