@@ -228,6 +228,19 @@ def _get(d: Any, *keys: str) -> Any:
 # ---- sections -------------------------------------------------------------------------------
 
 
+def run_warnings(summary: dict[str, Any] | None) -> list[str]:
+    """What a reader must know before trusting the map: a guessed camera, a doubtful focal length."""
+    out = []
+    if _get(summary, "camera", "guessed") is True:
+        out.append(
+            "No camera file was given: the intrinsics were guessed from a horizontal field of view. "
+            "Give the real intrinsics with --camera FILE for a metric-shape map."
+        )
+    if _get(summary, "focal_check", "plausible") is False:
+        out.append(str(_get(summary, "focal_check", "message")))
+    return out
+
+
 def _section_summary(run: RunFolder, s: dict[str, Any]) -> str:
     m = run.map
     names = axis_names(len(m.axes), m.axes.vertical_index)
@@ -264,7 +277,14 @@ def _section_summary(run: RunFolder, s: dict[str, Any]) -> str:
     )
     if run.summary is not None and "frames_lost" in run.summary:
         rows.append(("frames lost", _num(run.summary.get("frames_lost"))))
-    out = "<h2>Summary</h2>" + _table(rows)
+    focal = _get(run.summary, "focal_check")
+    if isinstance(focal, dict) and focal.get("message"):
+        rows.append(("focal check", _e(focal["message"])))
+    revisits = _get(run.summary, "revisits")
+    if isinstance(revisits, list):
+        rows.append(("revisits (loops closed)", _num(len(revisits))))
+    out = "".join(f"<p class='note'><b>Warning:</b> {_e(w)}</p>" for w in run_warnings(run.summary))
+    out += "<h2>Summary</h2>" + _table(rows)
     # lines per axis and the axes
     ax_rows = []
     lengths = m.lines.lengths() if len(m.lines) else np.zeros(0)

@@ -11,6 +11,7 @@ from typing import Literal
 
 from papl_mapper.axes import AxesConfig
 from papl_mapper.backend import BAConfig
+from papl_mapper.backend.calibration import FocalCheckConfig
 from papl_mapper.frontend import FrontendConfig
 from papl_mapper.mapping.incremental import IncrementalConfig
 from papl_mapper.mapping.lines import LineInitConfig
@@ -59,6 +60,8 @@ class RunConfig:
     """Ablation switches."""
     output: OutputConfig = field(default_factory=OutputConfig)
     """Extra outputs."""
+    focal: FocalCheckConfig = field(default_factory=FocalCheckConfig)
+    """Focal-length plausibility check after mapping (warns when the map supports another focal length)."""
     seed: int = 0
     """Seed for every random choice (RANSAC), so the same input gives the same map."""
     local_ba_every: int = 10

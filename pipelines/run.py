@@ -26,6 +26,7 @@ from papl_mapper.pipelines.config import RunConfig
 from papl_mapper import __version__
 from papl_mapper.atomic import atomic_path
 from papl_mapper.backend import global_ba, local_ba
+from papl_mapper.backend.calibration import check_focal
 from papl_mapper.config import config_to_dict, dump_toml
 from papl_mapper.errors import GeometryError, OptimizationError
 from papl_mapper.eval.trajectory import Trajectory, write_tum
@@ -149,6 +150,12 @@ def run(
         tracks.save(tracks_file)
         key_file.write_text(key)
     m, stats = map_tracks(tracks, cfg, timer, progress)
+    if cfg.focal.enabled:
+        with timer.stage("focal_check"):
+            focal = check_focal(m, cfg.focal)
+        guessed = " (the camera was guessed from hfov_deg)" if cam_src.guessed else ""
+        (log.warning if focal.warn else log.info)("%s%s", focal.message, guessed)
+        stats["focal_check"] = focal.summary()
     m.metadata.update(
         {
             "units": "arbitrary",

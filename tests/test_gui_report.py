@@ -339,3 +339,13 @@ def test_ground_truth_section_renders_the_agreed_eval_api(tmp_path, monkeypatch)
         _parse(build_report_html(run, gt_dir=tmp_path / "gt", options=ReportOptions(previews=False))).text
     )
     assert "gt/trajectory.tum missing" in body
+
+
+def test_report_warns_of_guessed_camera_and_wrong_focal_length():
+    from papl_mapper.gui.report import run_warnings
+
+    assert run_warnings({"camera": {"guessed": False}, "focal_check": {"plausible": True}}) == []
+    focal = {"plausible": False, "message": "focal length looks wrong"}
+    w = run_warnings({"camera": {"guessed": True}, "focal_check": focal})
+    assert len(w) == 2 and "guessed" in w[0] and w[1] == "focal length looks wrong"
+    assert run_warnings(None) == []

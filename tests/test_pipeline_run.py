@@ -16,6 +16,7 @@ TINY = Path(__file__).resolve().parents[1] / "samples" / "tiny"
 MAX_ATE_REL_PATH = 0.02  # ATE RMSE / GT path length over the posed frames (0.2-1.1% seen; ~1 m of path)
 MIN_POSED_FRAMES = 0.4  # fraction of frames with a pose (the sample turns at a blank wall)
 MAX_VERTICAL_ERR_DEG = 8.0
+MAX_FOCAL_ESTIMATE_ERR = 0.05  # relative error of the focal length the map supports
 OUTPUTS = ("map.papl", "trajectory.tum", "keyframes.tum", "config.toml", "summary.json", "log.txt")
 
 
@@ -98,3 +99,16 @@ def test_static_recording_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "could not initialise" in err and "parallax" in err
     assert not (tmp_path / "o" / "map.papl").exists()
+
+
+def test_guessed_focal_length_is_flagged(tmp_path):
+    """Without a camera file the 60 deg guess (554 px) is wrong for the sample (457 px): the run warns."""
+    if not (TINY / "video.mp4").exists():
+        pytest.skip("samples/tiny is not there")
+    assert main(["-q", "run", str(TINY / "video.mp4"), "--out", str(tmp_path)]) == 0
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["camera"]["guessed"] is True
+    focal = s["focal_check"]
+    assert focal["plausible"] is False
+    assert abs(focal["f_estimated"] / 457.0 - 1) < MAX_FOCAL_ESTIMATE_ERR
+    assert "focal length looks wrong" in (tmp_path / "log.txt").read_text()
