@@ -29,6 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import machine_info  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "memory_long.json"
+CULL_VARIANTS = {"cull": {}, "cull_lines1": {"min_line_views": 1}}
+"""Variant name -> CullConfig overrides; "base" runs without culling."""
 
 
 def _rss_mib() -> tuple[float, float]:
@@ -64,11 +66,12 @@ def child(args: argparse.Namespace) -> None:
 
     pipeline._Timer.stage = stage_with_memory
     cull_stats = CullStats()
-    if args.variant == "cull":
+    if args.variant in CULL_VARIANTS:
         register = pipeline.register_keyframes
 
         def register_and_cull(tracks, *a, **kw):  # noqa: ANN001, ANN002, ANN003, ANN202
-            return cull_keyframes(tracks, register(tracks, *a, **kw), CullConfig(), cull_stats)
+            cfg = CullConfig(**CULL_VARIANTS[args.variant])
+            return cull_keyframes(tracks, register(tracks, *a, **kw), cfg, cull_stats)
 
         pipeline.register_keyframes = register_and_cull
     rec = Path(args.recording)
@@ -97,7 +100,7 @@ def child(args: argparse.Namespace) -> None:
         "keyframes": int(s["counts"]["keyframes"]),
         "frontend_keyframes": int(s.get("frontend", {}).get("keyframes", -1)),
         "keyframes_registered": int(s.get("keyframes_registered", -1)),
-        "culling": cull_stats.as_dict() if args.variant == "cull" else None,
+        "culling": cull_stats.as_dict() if args.variant in CULL_VARIANTS else None,
         "points": int(s["counts"]["points"]),
         "lines": int(s["counts"]["lines"]),
         "frames_lost": int(s["frames_lost"]),
@@ -134,7 +137,7 @@ def main() -> None:
         "--recording", default="/tmp/corr720_5min", help="synth folder: video.mp4, camera.json, gt/"
     )
     ap.add_argument("--ends", default="60,300", help="comma-separated lengths in seconds from the start")
-    ap.add_argument("--variants", default="cull,base", help="cull (redundant keyframes culled), base")
+    ap.add_argument("--variants", default="cull,base", help="base, or culled: " + ", ".join(CULL_VARIANTS))
     ap.add_argument("--work", default="/tmp/memory_long", help="folder for the runs' outputs")
     ap.add_argument("--reuse-frontend", action="store_true", help="later variants resume the first's tracks")
     ap.add_argument("--frontend-from", help="run folder whose frontend checkpoint every variant resumes")
