@@ -155,7 +155,6 @@ def main() -> None:
     if not (rec / "video.mp4").exists():
         sys.exit(f"{rec / 'video.mp4'} not found: make it with papl-map synth (see this script's docstring)")
     results = Path(args.results)
-    previous = json.loads(results.read_text()).get("runs", []) if results.exists() else []
     rows = []
     for end in [float(e) for e in args.ends.split(",")]:
         first_out = None
@@ -181,11 +180,10 @@ def main() -> None:
             first_out = first_out or out
             print(_table([row]).splitlines()[1], flush=True)
     print(_table(rows))
-    keep = [
-        r
-        for r in previous
-        if (r["seconds"], r["variant"]) not in {(x["seconds"], x["variant"]) for x in rows}
-    ]
+    # read just before writing: runs of other lengths or variants may have finished meanwhile
+    previous = json.loads(results.read_text()).get("runs", []) if results.exists() else []
+    done = {(x["recording"], x["seconds"], x["variant"]) for x in rows}
+    keep = [r for r in previous if (r.get("recording"), r["seconds"], r["variant"]) not in done]
     results.parent.mkdir(exist_ok=True)
     results.write_text(
         json.dumps(
