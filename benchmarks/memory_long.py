@@ -29,7 +29,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import machine_info  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "memory_long.json"
-CULL_VARIANTS = {"cull": {}, "cull_lines1": {"min_line_views": 1}}
+CULL_VARIANTS = {
+    "cull": {},
+    "cull_lines1": {"min_line_views": 1},
+    "cull_shared200": {"min_shared_points": 200},
+    "cull_views5": {"min_other_views": 5},
+}
 """Variant name -> CullConfig overrides; "base" runs without culling."""
 
 
