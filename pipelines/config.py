@@ -13,6 +13,7 @@ from papl_mapper.axes import AxesConfig
 from papl_mapper.backend import BAConfig
 from papl_mapper.backend.calibration import FocalCheckConfig
 from papl_mapper.frontend import FrontendConfig
+from papl_mapper.mapping.culling import CullConfig
 from papl_mapper.mapping.incremental import IncrementalConfig
 from papl_mapper.mapping.lines import LineInitConfig
 
@@ -49,6 +50,9 @@ class RunConfig:
     """Decoding, points, lines, vanishing points, keyframes."""
     mapping: IncrementalConfig = field(default_factory=IncrementalConfig)
     """Initialisation, PnP tracking, point triangulation."""
+    cull: CullConfig = field(default_factory=lambda: CullConfig(enabled=False))
+    """Redundant keyframe culling after registration. Off: it halves keyframes and BA memory on a 60 s
+    720p walk (1298 -> 721, 1.88 -> 0.93 GiB) but moved the 10 s Atlanta walk from 0.29% to 0.90% of path."""
     lines: LineInitConfig = field(default_factory=LineInitConfig)
     """Line triangulation (the temporary-vanishing-point stage for structural lines)."""
     axes: AxesConfig = field(default_factory=AxesConfig)

@@ -45,6 +45,7 @@ from papl_mapper.mapping.assemble import (
     vertical_in_world,
     vp_directions_w,
 )
+from papl_mapper.mapping.culling import CullStats, cull_keyframes
 from papl_mapper.mapping.incremental import Registration, register_keyframes
 from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
 from papl_mapper.mapping.structure import find_structure, line_weights
@@ -223,10 +224,15 @@ def map_tracks(
     cfg.mapping.refine_every = cfg.local_ba_every
     with timer.stage("registration"), progress("keyframes") as cb:
         reg = register_keyframes(tracks, cfg.mapping, cb, refine if cfg.local_ba_every > 0 else None)
+    n_registered = len(reg.frames)
+    cull_stats = CullStats()
+    with timer.stage("culling"):
+        reg = cull_keyframes(tracks, reg, cfg.cull, cull_stats)
     T_wc = {f: np.linalg.inv(T) for f, T in reg.T_cw.items()}
     stats: dict[str, Any] = {
         "frames_unregistered": len(reg.lost),
-        "keyframes_registered": len(reg.frames),
+        "keyframes_registered": n_registered,
+        "culling": cull_stats.as_dict(),
         "revisits": [
             {
                 "frame": rv.frame,
