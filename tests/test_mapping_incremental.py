@@ -118,6 +118,7 @@ def test_segments_merge_on_matching_descriptors():
     pair them up and the second segment is brought into the first's frame by their Sim(3)."""
     from papl_mapper.geometry.se3 import so3_exp
     from papl_mapper.mapping.incremental import IncrementalConfig, Registration, _merge_segments
+    from papl_mapper.mapping.revisit import TrackIndex
 
     rng = np.random.default_rng(5)
     X = rng.uniform(-3, 3, (60, 3)) + [0, 0, 8]
@@ -149,7 +150,7 @@ def test_segments_merge_on_matching_descriptors():
     T_b = np.eye(4)
     T_b[:3, 3] = [0.3, 0.0, 0.1]
     b.T_cw[12] = T_b
-    merged = _merge_segments([a, b], IncrementalConfig(), tracks)
+    merged = _merge_segments([a, b], IncrementalConfig(), TrackIndex.build(tracks))
     assert merged is a and 12 in a.T_cw
     # the camera of frame 12 sees a's point 0 where it saw b's point 100, up to the scale s
     x_b = b.T_cw[12][:3, :3] @ b.points_w[100] + b.T_cw[12][:3, 3]

@@ -15,6 +15,7 @@ import numpy as np
 
 from papl_mapper.errors import InputError, PaplError
 from papl_mapper.eval.trajectory import Sim3, umeyama
+from papl_mapper.frontend.descriptors import match_descriptors
 from papl_mapper.geometry.se3 import invert
 from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
@@ -195,7 +196,7 @@ def register_keyframes(
     """
     cfg = config or IncrementalConfig()
     tracks.validate()
-    index = TrackIndex.build(tracks) if cfg.revisit.enabled else None
+    index = TrackIndex.build(tracks)
     keyframes = np.flatnonzero(tracks.is_keyframe)
     segments: list[Registration] = []
     start = 0
@@ -203,7 +204,7 @@ def register_keyframes(
         reg = _initialise(tracks, keyframes[keyframes >= start], cfg)
         if reg is None:
             break
-        end = _extend(tracks, reg, start, cfg, progress, refine, index)
+        end = _extend(tracks, reg, start, cfg, progress, refine, index if cfg.revisit.enabled else None)
         segments.append(reg)
         start = end + 1
     if not segments:
@@ -211,7 +212,7 @@ def register_keyframes(
             f"could not initialise from {len(keyframes)} keyframes: too little parallax or too few "
             "tracked points; try a recording with sideways or forward motion, or a lower --step"
         )
-    reg = _merge_segments(segments, cfg, tracks)
+    reg = _merge_segments(segments, cfg, index)
     registered = set(reg.T_cw) | set(reg.T_cw_frames)
     reg.lost = [f for f in range(len(tracks)) if f not in registered]
     reg.frames.sort()
@@ -281,36 +282,19 @@ def _extend(
     return max(f, f2)
 
 
-def _track_descriptors(tracks: Tracks, ids: set[int]) -> tuple[np.ndarray, np.ndarray]:
-    """One keyframe ORB descriptor per point track of `ids` that has one: (track ids, (n, 32) uint8)."""
-    if len(tracks.point_desc_row) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
-    tid = tracks.point_track[tracks.point_desc_row]
-    keep = np.isin(tid, np.fromiter(ids, np.int64, len(ids)))
-    tid, desc = tid[keep], tracks.point_desc[keep]
-    first = np.unique(tid, return_index=True)[1]
-    return tid[first], desc[first]
-
-
-def _matched_tracks(tracks: Tracks, a: set[int], b: set[int], ratio: float) -> list[tuple[int, int]]:
+def _matched_tracks(index: TrackIndex, a: set[int], b: set[int], ratio: float) -> list[tuple[int, int]]:
     """Pairs (track in b, track in a) whose keyframe ORB descriptors match (ratio test, mutual best)."""
-    ta, da = _track_descriptors(tracks, a)
-    tb, db = _track_descriptors(tracks, b)
+    ta = index.desc_ids[np.isin(index.desc_ids, np.fromiter(a, np.int64, len(a)))]
+    tb = index.desc_ids[np.isin(index.desc_ids, np.fromiter(b, np.int64, len(b)))]
     if len(ta) < 2 or len(tb) < 2:
         return []
-    import cv2
-
-    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
-    fwd = bf.knnMatch(db, da, k=2)
-    back = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(da, db, k=1) if m}
-    pairs = []
-    for m in fwd:
-        if len(m) == 2 and m[0].distance < ratio * m[1].distance and back.get(m[0].trainIdx) == m[0].queryIdx:
-            pairs.append((int(tb[m[0].queryIdx]), int(ta[m[0].trainIdx])))
-    return pairs
+    da = index.desc[np.searchsorted(index.desc_ids, ta)]
+    db = index.desc[np.searchsorted(index.desc_ids, tb)]
+    pairs = match_descriptors(db, da, 256, ratio)
+    return [(int(tb[i]), int(ta[j])) for i, j in pairs.tolist()]
 
 
-def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, tracks: Tracks) -> Registration:
+def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, index: TrackIndex) -> Registration:
     """Chain the segments into the largest one that can take them: a Sim(3) on the points they share,
     by track id or by matching keyframe ORB descriptors (a revisit of a mapped place)."""
     base = max(segments, key=lambda r: len(r.frames))
@@ -321,7 +305,7 @@ def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, tracks
         pairs = [(t, t) for t in shared]
         pairs += [
             p
-            for p in _matched_tracks(tracks, set(base.points_w), set(seg.points_w), cfg.merge_match_ratio)
+            for p in _matched_tracks(index, set(base.points_w), set(seg.points_w), cfg.merge_match_ratio)
             if p[0] != p[1]
         ]
         common = pairs
