@@ -288,3 +288,16 @@ def test_anchored_offset_reaches_any_parallel_line_and_jacobians(rng):
     np.testing.assert_allclose(
         g.anchored_offset_plucker(v, np.array([0.3, 0.0]), b, q, T_wr), g.anchored_plucker(v, 0.3, b, T_wr)
     )
+
+
+def test_similarity_T_cw_keeps_what_the_camera_sees():
+    """Moving the world by x -> s R x + t and the pose by similarity_T_cw scales camera coordinates by s."""
+    from papl_mapper.geometry.se3 import similarity_T_cw, so3_exp
+
+    rng = np.random.default_rng(3)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = so3_exp(rng.normal(size=3)), rng.normal(size=3)
+    R, t, s = so3_exp(rng.normal(size=3)), rng.normal(size=3), 1.7
+    X = rng.normal(size=(5, 3))
+    T2 = similarity_T_cw(T, R, t, s)
+    np.testing.assert_allclose((s * X @ R.T + t) @ T2[:3, :3].T + T2[:3, 3], s * (X @ T[:3, :3].T + T[:3, 3]))

@@ -16,7 +16,7 @@ import numpy as np
 from papl_mapper.errors import InputError, PaplError
 from papl_mapper.eval.trajectory import Sim3, umeyama
 from papl_mapper.frontend.descriptors import match_descriptors
-from papl_mapper.geometry.se3 import invert
+from papl_mapper.geometry.se3 import invert, similarity_T_cw
 from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.revisit import Revisit, RevisitConfig, TrackIndex, close_loop, find_revisit
@@ -337,10 +337,7 @@ def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, index:
             for f, T in src.items():
                 if f in base.T_cw or f in base.T_cw_frames:
                     continue
-                T2 = np.eye(4)
-                T2[:3, :3] = T[:3, :3] @ R.T
-                T2[:3, 3] = c * T[:3, 3] - T2[:3, :3] @ t
-                dst[f] = T2
+                dst[f] = similarity_T_cw(T, R, t, c)
         base.frames = sorted(set(base.frames) | {f for f in seg.frames if f in base.T_cw})
         for tid, X in seg.points_w.items():
             base.points_w.setdefault(tid, c * R @ X + t)

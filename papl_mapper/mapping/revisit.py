@@ -17,6 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from papl_mapper.frontend.descriptors import match_descriptors
+from papl_mapper.geometry.se3 import similarity_T_cw
 from papl_mapper.mapping.tracking import PnPConfig, track_pnp
 from papl_mapper.tracks import Tracks
 
@@ -182,11 +183,7 @@ def close_loop(
     for poses in (T_cw, T_cw_frames):
         for g, T in poses.items():
             if g > f0:
-                Ra, ta, sa = part(g)
-                T2 = np.eye(4)
-                T2[:3, :3] = T[:3, :3] @ Ra.T
-                T2[:3, 3] = sa * T[:3, 3] - T2[:3, :3] @ ta
-                poses[g] = T2
+                poses[g] = similarity_T_cw(T, *part(g))
     born = _first_keyframe(tracks, points_w, T_cw)
     for tid, g in born.items():
         if g > f0:
