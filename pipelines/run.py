@@ -25,10 +25,9 @@ from papl_mapper.pipelines.config import RunConfig
 
 from papl_mapper import __version__
 from papl_mapper.atomic import atomic_path
-from papl_mapper.backend import global_ba, local_ba
+from papl_mapper.backend import global_ba
 from papl_mapper.backend.calibration import check_focal
 from papl_mapper.config import config_to_dict, dump_toml
-from papl_mapper.errors import GeometryError, OptimizationError
 from papl_mapper.eval.trajectory import Trajectory, write_tum
 from papl_mapper.frontend import FrontendStats, process
 from papl_mapper.frontend.camera import camera_for_recording
@@ -46,10 +45,11 @@ from papl_mapper.mapping.assemble import (
     vp_directions_w,
 )
 from papl_mapper.mapping.culling import CullStats, cull_keyframes
-from papl_mapper.mapping.incremental import Registration, register_keyframes
+from papl_mapper.mapping.incremental import register_keyframes
 from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
 from papl_mapper.mapping.structure import find_structure, line_weights
 from papl_mapper.mapping.tracking import track_pnp
+from papl_mapper.mapping.windowed import windowed_refiner
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -203,26 +203,9 @@ def map_tracks(
     progress = progress or _silent
     cfg.mapping.pnp.seed = cfg.seed
 
-    def refine(reg: Registration) -> None:
-        """Windowed BA over the newest keyframes; the older ones that share points hold still."""
-        T_wc = {f: np.linalg.inv(reg.T_cw[f]) for f in reg.frames}
-        m = assemble_map(tracks, T_wc, reg.points_w, LineEstimates.empty())
-        cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views)
-        frames = sorted(reg.frames)
-        # the two oldest keyframes stay fixed: with the shared points they hold the gauge and scale
-        window = np.array(frames[max(2, len(frames) - cfg.local_ba_window) :])
-        try:
-            res = local_ba(m, window, cfg.ba)
-        except (GeometryError, OptimizationError) as exc:
-            log.debug("windowed BA skipped: %s", exc)
-            return
-        for k, T in zip(res.map.keyframes.ids, res.map.keyframes.T_wc, strict=True):
-            reg.T_cw[int(k)] = np.linalg.inv(T)
-        for p, x in zip(res.map.points.ids, res.map.points.xyz, strict=True):
-            reg.points_w[int(p)] = x
-
     cfg.mapping.refine_every = cfg.local_ba_every
     with timer.stage("registration"), progress("keyframes") as cb:
+        refine = windowed_refiner(tracks, cfg.ba, cfg.local_ba_window, cfg.max_point_error_px)
         reg = register_keyframes(tracks, cfg.mapping, cb, refine if cfg.local_ba_every > 0 else None)
     n_registered = len(reg.frames)
     cull_stats = CullStats()
