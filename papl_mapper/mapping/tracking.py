@@ -1,7 +1,8 @@
 """Pose tracking against the map: PnP with RANSAC from 3D points to pixels, refined by LM.
 
-Line reprojection and the vanishing-direction rotation constraint refine this pose later in
-the mapping stage; this module gives the robust first estimate and its inliers.
+Given the map lines seen in the frame and the world directions of the vanishing points, the pose is
+then refined with line reprojection and the vanishing-direction rotation constraint too
+(mapping/pose_refine.py); without them the points-only LM pose is the result.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
+from papl_mapper.mapping.pose_refine import PoseRefineConfig, RefineStats, match_directions, refine_pose
 
 
 @dataclass
@@ -24,6 +27,8 @@ class PnPConfig:
     """RANSAC iterations."""
     seed: int = 0
     """Seed for OpenCV's RANSAC."""
+    refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
+    """Refinement with lines and vanishing directions after PnP (when the caller passes them)."""
 
 
 @dataclass
@@ -35,6 +40,8 @@ class PnPResult:
     inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     rms_px: float = float("nan")
     reason: str = ""
+    refine: RefineStats | None = None
+    """Statistics of the line / direction refinement, None when it did not run."""
 
 
 def _to_T(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -50,8 +57,18 @@ def track_pnp(
     K: np.ndarray,
     T_cw_guess: np.ndarray | None = None,
     config: PnPConfig | None = None,
+    *,
+    lines_w: np.ndarray | None = None,
+    line_xy: np.ndarray | None = None,
+    dirs_w: np.ndarray | None = None,
+    dirs_c: np.ndarray | None = None,
 ) -> PnPResult:
-    """Pose from 3D world points (N,3) seen at undistorted pixels (N,2); a guess seeds the search."""
+    """Pose from 3D world points (N,3) seen at undistorted pixels (N,2); a guess seeds the search.
+
+    Optional refinement terms: map lines seen in the frame (M,2,3) world endpoints or (M,6) Pluecker
+    with their segments (M,4) px, and world directions (A,3) with the frame's vanishing directions
+    (V,3) (NaN rows skipped, matched sign-free within `config.refine.match_direction_deg`).
+    """
     cfg = config or PnPConfig()
     points_w = np.asarray(points_w, np.float64).reshape(-1, 3)
     pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
@@ -81,11 +98,34 @@ def track_pnp(
     mask[idx.ravel()] = True
     rvec, tvec = cv2.solvePnPRefineLM(points_w[mask], pixels[mask], K, None, rvec, tvec)
     T_cw = _to_T(rvec, tvec)
+    stats = None
+    rc = cfg.refine
+    has_lines = rc.lines and lines_w is not None and line_xy is not None and len(lines_w) > 0
+    has_dirs = rc.directions and dirs_w is not None and dirs_c is not None and len(dirs_w) > 0
+    if rc.enabled and (has_lines or has_dirs):
+        d_w, d_c = (
+            match_directions(T_cw[:3, :3], dirs_w, dirs_c, rc.match_direction_deg)
+            if has_dirs
+            else (None, None)
+        )
+        T_cw, stats = refine_pose(
+            T_cw,
+            points_w[mask],
+            pixels[mask],
+            K,
+            lines_w=lines_w,
+            line_xy=line_xy,
+            dirs_w=d_w,
+            dirs_c=d_c,
+            config=rc,
+        )
     proj = (points_w @ T_cw[:3, :3].T + T_cw[:3, 3]) @ K.T
     with np.errstate(divide="ignore", invalid="ignore"):
         err = np.linalg.norm(proj[:, :2] / proj[:, 2:3] - pixels, axis=1)
     mask = (proj[:, 2] > 0) & (err < cfg.ransac_threshold_px)
     if mask.sum() < cfg.min_inliers:
-        return PnPResult(False, T_cw, mask, reason=f"{int(mask.sum())} inliers after refinement")
+        return PnPResult(
+            False, T_cw, mask, reason=f"{int(mask.sum())} inliers after refinement", refine=stats
+        )
     rms = float(np.sqrt(np.mean(err[mask] ** 2)))
-    return PnPResult(True, T_cw, mask, rms, f"{int(mask.sum())}/{n} inliers, rms {rms:.2f} px")
+    return PnPResult(True, T_cw, mask, rms, f"{int(mask.sum())}/{n} inliers, rms {rms:.2f} px", stats)
