@@ -1,4 +1,5 @@
-"""eval stage of papl-mapper: trajectory (ATE, RPE, scale), line-map and axis metrics against ground truth."""
+"""eval stage of papl-mapper: trajectory (ATE, RPE, scale), line-map and axis metrics against ground truth
+(line recall also against the part of the ground truth the recording shows)."""
 
 from .axes import AxisMatch, GtAxes, line_angle_deg, match_axes, read_axes
 from .evaluate import (
@@ -15,6 +16,7 @@ from .evaluate import (
 )
 from .lines import Segments, line_metrics, nearest_segment_distance, point_segment_distance, read_segments
 from .trajectory import Sim3, Trajectory, associate, associate_trajectories, read_tum, rpe, umeyama, write_tum
+from .visibility import Visibility, recording_camera, scene_occluders, segment_visibility
 
 __all__ = [
     "AxisMatch",
@@ -25,6 +27,7 @@ __all__ = [
     "Segments",
     "Sim3",
     "Trajectory",
+    "Visibility",
     "associate",
     "associate_trajectories",
     "evaluate",
@@ -38,9 +41,12 @@ __all__ = [
     "read_axes",
     "read_segments",
     "read_tum",
+    "recording_camera",
     "resolve_gt_dir",
     "resolve_result",
     "rpe",
+    "scene_occluders",
+    "segment_visibility",
     "trajectory_of_map",
     "umeyama",
     "write_json",
