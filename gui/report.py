@@ -469,11 +469,20 @@ def _section_gt(run: RunFolder, gt_dir: Path | None) -> str:
         ("RPE rotation [deg]", _num(getattr(res, "rpe_rot_deg", None))),
         ("Sim(3) scale", _num(getattr(res, "scale", None))),
     ]
-    for name in ("line_recall", "line_precision"):
-        d = getattr(res, name, None)
-        if isinstance(d, dict):
-            for thr, v in d.items():
-                rows.append((f"{name.replace('_', ' ')} @ {thr}", _num(v)))
+    recall = getattr(res, "line_recall", None)
+    recall_vis = getattr(res, "line_recall_visible", None) or {}
+    precision = getattr(res, "line_precision", None)
+    frac = getattr(res, "gt_visible_fraction", None)
+    if frac is not None:
+        n_min = getattr(res, "line_visible_min_frames", "?")
+        rows.append((f"share of the GT line length seen in >= {n_min} frames", _num(frac)))
+    for thr in dict.fromkeys([*(recall or {}), *(precision or {})]):  # recall, recall of seen GT, precision
+        if isinstance(recall, dict) and thr in recall:
+            rows.append((f"line recall @ {thr}", _num(recall[thr])))
+        if thr in recall_vis:
+            rows.append((f"line recall of the seen GT @ {thr}", _num(recall_vis[thr])))
+        if isinstance(precision, dict) and thr in precision:
+            rows.append((f"line precision @ {thr}", _num(precision[thr])))
     ae = getattr(res, "axis_errors_deg", None)
     if ae is not None:
         rows.append(("axis errors [deg]", _e(", ".join(f"{float(v):.3f}" for v in ae)) or _na()))

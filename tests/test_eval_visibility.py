@@ -201,3 +201,18 @@ def test_demo_ground_truth_seen_share(tmp_path):
     assert 0.3 < res.gt_visible_fraction < 0.7  # a one-way walk sees about half of the ring corridor
     for key in res.line_thresholds:
         assert res.line_recall_visible[key] == pytest.approx(1.0, abs=EXACT)
+
+
+def test_report_shows_recall_of_the_seen_ground_truth_beside_recall(tmp_path):
+    from papl_mapper.gui.report import ReportOptions, build_report_html
+
+    T = poses()
+    folder = write_recording(tmp_path / "rec", SEGMENTS[:5], T)
+    est = np.array([SEGMENTS[0], [[2, -2, 4], [4, -2, 4]], SEGMENTS[4]])
+    text = build_report_html(line_map(T, est), gt_dir=folder, options=ReportOptions(previews=False))
+    i_recall = text.index("line recall @ 1%")
+    i_seen = text.index("line recall of the seen GT @ 1%")
+    i_prec = text.index("line precision @ 1%")
+    assert i_recall < i_seen < i_prec
+    assert "0.5" in text[i_seen:i_prec]  # the hand value, (2 + 2) / 8
+    assert "share of the GT line length seen in &gt;= 5 frames" in text
