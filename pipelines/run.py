@@ -3,13 +3,15 @@
 frontend (tracks) -> keyframe registration with windowed BA -> points-only global BA -> line
 triangulation (temporary-VP stage) -> upright rotation, axes and soft association -> full global
 BA over points, anchored and orthonormal lines -> axis update and a second BA -> every frame's pose.
-The frontend's tracks are checkpointed, so `--resume` after an interruption skips decoding.
+The frontend, registration, points BA and full BA are checkpointed in OUT/.checkpoint (see
+`pipelines/checkpoint.py`), so `--resume` after an interruption continues after the latest of them.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -21,6 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from papl_mapper.pipelines import checkpoint as ckpt
+from papl_mapper.pipelines.checkpoint import AxisInputs, StageStore
 from papl_mapper.pipelines.config import RunConfig
 
 from papl_mapper import __version__
@@ -45,7 +49,7 @@ from papl_mapper.mapping.assemble import (
     vp_directions_w,
 )
 from papl_mapper.mapping.culling import CullStats, cull_keyframes
-from papl_mapper.mapping.incremental import register_keyframes
+from papl_mapper.mapping.incremental import Registration, register_keyframes
 from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
 from papl_mapper.mapping.structure import find_structure, line_weights
 from papl_mapper.mapping.tracking import track_pnp
@@ -53,6 +57,9 @@ from papl_mapper.mapping.windowed import windowed_refiner
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
+
+OUTPUT_FILES = ("trajectory.tum", "keyframes.tum", "config.toml", "summary.json", "map.papl")
+"""What `run` writes into the output folder, in the order the files are renamed into place."""
 
 ProgressCallback = Callable[[int, int, str], None]
 ProgressFactory = Callable[[str], AbstractContextManager[ProgressCallback]]
@@ -72,6 +79,17 @@ class RunResult:
     summary: dict[str, Any] = field(default_factory=dict)
 
 
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C during `run`: the stage it stopped, and the latest checkpoint `--resume` continues from."""
+
+    def __init__(self, stage: str, resume_from: str | None, checkpoint_dir: Path | None) -> None:
+        super().__init__(stage)
+        self.stage = stage
+        self.resume_from = resume_from
+        """A stage of `checkpoint.STAGES`, or None when no stage had finished."""
+        self.checkpoint_dir = checkpoint_dir
+
+
 def _sha256(path: Path, limit: int = 1 << 30) -> str:
     """SHA-256 of a file (of its first GiB for larger ones, which the summary says)."""
     h = hashlib.sha256()
@@ -88,18 +106,21 @@ def _sha256(path: Path, limit: int = 1 << 30) -> str:
 
 
 class _Timer:
-    """Wall time per stage, in the order the stages ran."""
+    """Wall time per stage, in the order the stages ran; `current` names the running (or failed) stage."""
 
     def __init__(self) -> None:
         self.times: dict[str, float] = {}
+        self.current: str | None = None
 
     @contextlib.contextmanager
     def stage(self, name: str) -> Iterator[None]:
+        self.current = name
         t0 = time.perf_counter()
         try:
             yield
         finally:
             self.times[name] = round(self.times.get(name, 0.0) + time.perf_counter() - t0, 4)
+        self.current = None  # only when the stage ended normally: an exception leaves its name
 
 
 def run(
@@ -120,7 +141,6 @@ def run(
     progress = progress or _silent
     recording, out = Path(recording), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / ".checkpoint"
     timer = _Timer()
     rec = open_recording(recording, step, start_s, end_s, max_size)
     cam_src = camera_for_recording(camera_file, rec.width, rec.height, cfg.hfov_deg)
@@ -131,82 +151,171 @@ def run(
             "frontend": config_to_dict(cfg.frontend),
             "camera": cam_src.camera.to_dict(),
             "range": [start_s, end_s, step, max_size],
+            "format": ckpt.FORMAT_VERSION,
         },
         sort_keys=True,
         default=str,
     )
-    tracks_file = ckpt / "tracks.npz"
-    key_file = ckpt / "tracks.key"
-    tracks = None
-    if resume and tracks_file.exists() and key_file.exists() and key_file.read_text() == key:
-        tracks = Tracks.load(tracks_file)
-        log.info("resumed: frontend tracks from %s", tracks_file)
-    if tracks is None:
-        fstats = FrontendStats()
-        with timer.stage("frontend"), progress("frontend") as cb:
-            tracks = process(rec, cam_src.camera, cfg.frontend, progress=cb, stats=fstats)
-        (ckpt / "frontend.json").parent.mkdir(exist_ok=True)
-        _atomic_text(ckpt / "frontend.json", json.dumps(dataclasses.asdict(fstats), default=json_default))
-        ckpt.mkdir(exist_ok=True)
-        tracks.save(tracks_file)
-        key_file.write_text(key)
-    m, stats = map_tracks(tracks, cfg, timer, progress)
-    if cfg.focal.enabled:
-        with timer.stage("focal_check"):
-            focal = check_focal(m, cfg.focal)
-        guessed = " (the camera was guessed from hfov_deg)" if cam_src.guessed else ""
-        (log.warning if focal.warn else log.info)("%s%s", focal.message, guessed)
-        stats["focal_check"] = focal.summary()
-    m.metadata.update(
-        {
-            "units": "arbitrary",
-            "software": f"papl-mapper {__version__}",
-            "source": recording.name,
-            "source_path": str(recording),
-            "source_sha256": sha,
-            "camera_source": cam_src.source,
-            "camera_guessed": bool(cam_src.guessed),
-            "variant": config_to_dict(cfg.variant),
+    store = StageStore(out / ".checkpoint", key, resume)
+    try:
+        loaded = store.load("frontend", ckpt.read_tracks)
+        if loaded is None:
+            fstats = FrontendStats()
+            with timer.stage("frontend"), progress("frontend") as cb:
+                tracks = process(rec, cam_src.camera, cfg.frontend, progress=cb, stats=fstats)
+            frontend_stats = dataclasses.asdict(fstats)
+            with timer.stage("checkpoints"):
+                store.save("frontend", functools.partial(ckpt.write_tracks, tracks=tracks), frontend_stats)
+        else:
+            tracks, frontend_stats = loaded
+        m, stats = map_tracks(tracks, cfg, timer, progress, store)
+        if cfg.focal.enabled:
+            with timer.stage("focal_check"):
+                focal = check_focal(m, cfg.focal)
+            guessed = " (the camera was guessed from hfov_deg)" if cam_src.guessed else ""
+            (log.warning if focal.warn else log.info)("%s%s", focal.message, guessed)
+            stats["focal_check"] = focal.summary()
+        m.metadata.update(
+            {
+                "units": "arbitrary",
+                "software": f"papl-mapper {__version__}",
+                "source": recording.name,
+                "source_path": str(recording),
+                "source_sha256": sha,
+                "camera_source": cam_src.source,
+                "camera_guessed": bool(cam_src.guessed),
+                "variant": config_to_dict(cfg.variant),
+                "timings_s": timer.times,
+            }
+        )
+        with timer.stage("trajectory"):
+            traj = frame_trajectory(tracks, m, cfg)
+        summary = {
+            "recording": {
+                "path": str(recording),
+                "frames": int(len(tracks)),
+                "fps": float(rec.fps),
+                "width": int(rec.width),
+                "height": int(rec.height),
+                "sha256": sha,
+                "stopped_early": bool(rec.stopped_early),
+                "stop_message": rec.stop_message,
+            },
+            "camera": {
+                **cam_src.camera.to_dict(),
+                "source": cam_src.source,
+                "guessed": bool(cam_src.guessed),
+            },
+            "counts": m.summary(),
+            "frontend": frontend_stats,
+            "frames_lost": int(len(tracks) - len(traj)),
+            **stats,
             "timings_s": timer.times,
+            "resumed": store.resumed.as_dict() if store.resumed else None,
+            "per_frame": _per_frame(tracks),
         }
-    )
-    with timer.stage("trajectory"):
-        traj = frame_trajectory(tracks, m, cfg)
-    summary = {
-        "recording": {
-            "path": str(recording),
-            "frames": int(len(tracks)),
-            "fps": float(rec.fps),
-            "width": int(rec.width),
-            "height": int(rec.height),
-            "sha256": sha,
-            "stopped_early": bool(rec.stopped_early),
-            "stop_message": rec.stop_message,
-        },
-        "camera": {**cam_src.camera.to_dict(), "source": cam_src.source, "guessed": bool(cam_src.guessed)},
-        "counts": m.summary(),
-        "frontend": _frontend_stats(ckpt),
-        "frames_lost": int(len(tracks) - len(traj)),
-        **stats,
-        "timings_s": timer.times,
-        "per_frame": _per_frame(tracks),
-    }
-    _write_outputs(out, m, traj, cfg, summary)
+        timer.current = "writing outputs"
+        _write_outputs(out, m, traj, cfg, summary)
+    except KeyboardInterrupt as exc:
+        raise RunInterrupted(timer.current or "between stages", store.latest, store.folder) from exc
     return RunResult(out, m, summary)
 
 
 def map_tracks(
-    tracks: Tracks, cfg: RunConfig, timer: _Timer | None = None, progress: ProgressFactory | None = None
+    tracks: Tracks,
+    cfg: RunConfig,
+    timer: _Timer | None = None,
+    progress: ProgressFactory | None = None,
+    store: StageStore | None = None,
 ) -> tuple[Map, dict[str, Any]]:
-    """Everything after the frontend: tracks -> optimised, upright Map and statistics."""
+    """Everything after the frontend: tracks -> optimised, upright Map and statistics.
+
+    With a `store`, registration, points BA and full BA are checkpointed, and a resumed run continues
+    after the latest valid checkpoint (`tracks.point_track` is restored as registration left it).
+    """
     timer = timer or _Timer()
     progress = progress or _silent
+    store = store or StageStore.off()
     cfg.mapping.pnp.seed = cfg.seed
 
     cfg.mapping.refine_every = cfg.local_ba_every
-    with timer.stage("registration"), progress("keyframes") as cb:
-        refine = windowed_refiner(tracks, cfg.ba, cfg.local_ba_window, cfg.max_point_error_px)
-        reg = register_keyframes(tracks, cfg.mapping, cb, refine if cfg.local_ba_every > 0 else None)
+    store.chain(cfg)
+    loaded = store.load("registration", functools.partial(ckpt.read_registration, tracks=tracks))
+    if loaded is None:
+        with timer.stage("registration"), progress("keyframes") as cb:
+            refine = windowed_refiner(tracks, cfg.ba, cfg.local_ba_window, cfg.max_point_error_px)
+            reg = register_keyframes(tracks, cfg.mapping, cb, refine if cfg.local_ba_every > 0 else None)
+        _save(store, timer, "registration", ckpt.write_registration, reg=reg, tracks=tracks)
+    else:
+        reg, point_track = loaded
+        tracks.point_track[:] = point_track  # in place, like the loop closures that renamed them
+    full = store.load("ba_full", ckpt.read_map)
+    points = store.load("ba_points", ckpt.read_map) if full is None else None
+    if full is not None:
+        m, stats, axis_inputs = full
+    else:
+        if points is not None:
+            m, stats, _ = points
+        else:
+            m, stats = _points_ba(tracks, reg, cfg, timer, progress)
+            _save(store, timer, "ba_points", ckpt.write_map, m=m, stats=stats)
+        up = vertical_in_world(tracks, _poses(m))
+        if up is None:
+            log.warning("no vertical vanishing direction: the map keeps the first camera's orientation")
+        else:
+            transform_map(m, rotation_to_z(up))
+        if cfg.variant.lines == "none":
+            return m, stats
+        m, axis_inputs = _lines_and_axes(tracks, m, up is not None, cfg, timer)
+        with timer.stage("ba_full"):
+            m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines)")
+        _save(store, timer, "ba_full", ckpt.write_map, m=m, axis_inputs=axis_inputs, stats=stats)
+    if axis_inputs is not None and cfg.variant.axis_management:
+        from papl_mapper.axes import remap_weights, update_axes
+
+        ai = axis_inputs
+        with timer.stage("axis_update"):
+            upd = update_axes(ai.axes_w, m.axes.directions, ai.state, cfg.axes)
+            w = remap_weights(m.lines.axis_weights, upd.index_map, len(upd.axes))
+            stats["axis_update"] = upd.messages()
+            m.axes = upd.to_map_axes()
+            fresh = line_weights(
+                ai.obs_dirs_w,
+                ai.obs_line,
+                len(ai.line_track),
+                m.axes.directions,
+                cfg.axes,
+                cfg.variant.association == "hard",
+            )
+            order = np.searchsorted(ai.line_track, m.lines.ids)
+            m.lines.axis_weights = np.where(fresh[order].sum(1, keepdims=True) > 0, fresh[order], w)
+            set_line_states(m)
+        if upd.adopted or upd.deleted or upd.merged:
+            with timer.stage("ba_full"):
+                m, stats["ba"] = _ba(m, cfg, progress, "BA (after axis update)")
+    dropped = drop_stray_lines(m, cfg.stray_line_margin)
+    if dropped:
+        log.info("%d lines reaching outside the points' extent dropped after BA", dropped)
+    if len(m.axes) and m.axes.vertical_index >= 0:
+        transform_map(m, rotation_to_z(_up(m.axes)))
+    return m, stats
+
+
+def _save(store: StageStore, timer: _Timer, stage: str, write: Callable[..., None], **kw: Any) -> None:
+    """Checkpoint one stage (its write time adds to the "checkpoints" timing)."""
+    stats = kw.pop("stats", None)
+    if stage == "registration" and not ckpt.registration_storable():
+        log.warning("registration is not checkpointed: Registration has fields the checkpoint does not know")
+        store.skip(stage)
+        return
+    with timer.stage("checkpoints") if store.folder else contextlib.nullcontext():
+        store.save(stage, functools.partial(write, **kw), stats, dict(timer.times))
+
+
+def _points_ba(
+    tracks: Tracks, reg: Registration, cfg: RunConfig, timer: _Timer, progress: ProgressFactory
+) -> tuple[Map, dict[str, Any]]:
+    """Keyframe culling, the points-only map and its global BA, with the statistics so far."""
     n_registered = len(reg.frames)
     cull_stats = CullStats()
     with timer.stage("culling"):
@@ -230,13 +339,14 @@ def map_tracks(
     m = assemble_map(tracks, T_wc, reg.points_w, LineEstimates.empty())
     with timer.stage("ba_points"):
         m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points)")
-    up = vertical_in_world(tracks, _poses(m))
-    if up is None:
-        log.warning("no vertical vanishing direction: the map keeps the first camera's orientation")
-    else:
-        transform_map(m, rotation_to_z(up))
-    if cfg.variant.lines == "none":
-        return m, stats
+    return m, stats
+
+
+def _lines_and_axes(
+    tracks: Tracks, m: Map, upright: bool, cfg: RunConfig, timer: _Timer
+) -> tuple[Map, AxisInputs | None]:
+    """Line triangulation on the upright points map, then axes and soft association: the map for the
+    full BA and what the axis update after it needs (None without axes: orthonormal lines)."""
     with timer.stage("lines"):
         # every registered frame's segments, not only the keyframes': more views, longer baselines
         T_by_frame = frame_poses(tracks, m, cfg) if cfg.lines_from_all_frames else _poses(m)
@@ -250,8 +360,8 @@ def map_tracks(
     log.info("%d lines triangulated, %d from vanishing directions", len(est.track), int(est.from_vp.sum()))
     with timer.stage("axes"):
         m_points = m
-        if cfg.variant.lines == "orthonormal" or up is None:
-            structure = None
+        if cfg.variant.lines == "orthonormal" or not upright:
+            axis_inputs = None
             m = assemble_map(tracks, _poses(m_points), _points(m_points), est)
         else:
             obs_line = np.searchsorted(est.track, tracks.line_track[sel])
@@ -275,37 +385,11 @@ def map_tracks(
             m = assemble_map(
                 tracks, _poses(m_points), _points(m_points), est, structure.axes, structure.weights
             )
-        m.metadata = dict(m_points.metadata)
-    with timer.stage("ba_full"):
-        m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines)")
-    if structure is not None and cfg.variant.axis_management:
-        from papl_mapper.axes import remap_weights, update_axes
-
-        with timer.stage("axis_update"):
-            upd = update_axes(structure.axes.directions, m.axes.directions, structure.state, cfg.axes)
-            w = remap_weights(m.lines.axis_weights, upd.index_map, len(upd.axes))
-            stats["axis_update"] = upd.messages()
-            m.axes = upd.to_map_axes()
-            fresh = line_weights(
-                obs_dirs,
-                obs_line,
-                len(est.track),
-                m.axes.directions,
-                cfg.axes,
-                cfg.variant.association == "hard",
+            axis_inputs = AxisInputs(
+                structure.axes.directions, structure.state, obs_dirs, obs_line, est.track
             )
-            order = np.searchsorted(est.track, m.lines.ids)
-            m.lines.axis_weights = np.where(fresh[order].sum(1, keepdims=True) > 0, fresh[order], w)
-            set_line_states(m)
-        if upd.adopted or upd.deleted or upd.merged:
-            with timer.stage("ba_full"):
-                m, stats["ba"] = _ba(m, cfg, progress, "BA (after axis update)")
-    dropped = drop_stray_lines(m, cfg.stray_line_margin)
-    if dropped:
-        log.info("%d lines reaching outside the points' extent dropped after BA", dropped)
-    if len(m.axes) and m.axes.vertical_index >= 0:
-        transform_map(m, rotation_to_z(_up(m.axes)))
-    return m, stats
+        m.metadata = dict(m_points.metadata)
+    return m, axis_inputs
 
 
 def _ba(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> tuple[Map, dict[str, Any]]:
@@ -345,13 +429,6 @@ def _ba(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> tuple[
         },
     }
     return res.map, stats
-
-
-def _frontend_stats(ckpt: Path) -> dict[str, Any]:
-    try:
-        return json.loads((ckpt / "frontend.json").read_text())
-    except (OSError, ValueError):
-        return {}
 
 
 def _up(axes: Axes) -> np.ndarray:
@@ -408,12 +485,16 @@ def _per_frame(tracks: Tracks) -> dict[str, list[int]]:
 
 
 def _write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary: dict[str, Any]) -> None:
-    """Everything is written under a temporary name and renamed, the map last."""
-    write_tum(out / "trajectory.tum", traj)
-    write_tum(out / "keyframes.tum", Trajectory(m.keyframes.timestamp, m.keyframes.T_wc, "keyframes"))
-    _atomic_text(out / "config.toml", dump_toml(config_to_dict(cfg)))
-    _atomic_text(out / "summary.json", json.dumps(summary, indent=1, default=json_default))
-    m.save(out / "map.papl")
+    """Every output is written under a temporary name first, then all are renamed (the map last), so an
+    interruption while writing leaves the previous run's outputs, not a mix of two runs."""
+    with contextlib.ExitStack() as stack:
+        # contexts close in reverse: the map, entered first, is renamed last
+        tmp = {name: stack.enter_context(atomic_path(out / name)) for name in reversed(OUTPUT_FILES)}
+        m.save(tmp["map.papl"])
+        _atomic_text(tmp["summary.json"], json.dumps(summary, indent=1, default=json_default))
+        _atomic_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
+        write_tum(tmp["keyframes.tum"], Trajectory(m.keyframes.timestamp, m.keyframes.T_wc, "keyframes"))
+        write_tum(tmp["trajectory.tum"], traj)
 
 
 def _atomic_text(path: Path, text: str) -> None:
@@ -421,4 +502,4 @@ def _atomic_text(path: Path, text: str) -> None:
         tmp.write_text(text)
 
 
-__all__ = ["RunConfig", "RunResult", "frame_trajectory", "map_tracks", "run"]
+__all__ = ["RunConfig", "RunInterrupted", "RunResult", "frame_trajectory", "map_tracks", "run"]

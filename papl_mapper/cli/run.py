@@ -4,11 +4,17 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from papl_mapper.cli.progress import progress_bar
 from papl_mapper.config import load_config
 from papl_mapper.errors import InputError
+
+if TYPE_CHECKING:
+    from papl_mapper.pipelines.run import RunInterrupted
 
 log = logging.getLogger("papl_mapper")
 
@@ -19,8 +25,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="map a recording: anchored line map, trajectories, summary",
         description=__doc__,
         epilog="Outputs in DIR: map.papl, trajectory.tum (every frame), keyframes.tum, config.toml, "
-        "summary.json, log.txt; with --export/--render/--report also those. An interrupted run "
-        "continues with --resume.",
+        "summary.json, log.txt; with --export/--render/--report also those. Finished stages are "
+        "checkpointed in DIR/.checkpoint: after Ctrl-C the outputs of a previous run are unchanged and "
+        "--resume continues after the latest finished stage (with any settings: a stage reruns when "
+        "its settings changed).",
     )
     p.add_argument("recording", help="video file (anything OpenCV's FFmpeg reads) or a folder of images")
     p.add_argument("--out", required=True, type=Path, help="output folder (created if missing)")
@@ -44,7 +52,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-size", type=int, help="downscale so the longer image side is at most this")
     p.add_argument("--seed", type=int, help="seed for random choices (default 0)")
     p.add_argument(
-        "--resume", action="store_true", help="reuse the frontend checkpoint of an interrupted run"
+        "--resume",
+        action="store_true",
+        help="continue after the latest checkpointed stage (frontend, registration, points BA, full BA) "
+        "whose input and settings are unchanged",
     )
     p.add_argument(
         "--export", help="comma-separated export formats written beside the map, e.g. ply,glb,usdc"
@@ -57,6 +68,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from papl_mapper.pipelines.config import PRESETS, RunConfig
+    from papl_mapper.pipelines.run import RunInterrupted
     from papl_mapper.pipelines.run import run as run_pipeline
 
     if args.preset not in PRESETS:
@@ -67,13 +79,11 @@ def run(args: argparse.Namespace) -> int:
     if args.export:
         overrides.append(f"output.export={args.export}")
     cfg = load_config(RunConfig, args.config, overrides)
-    args.out.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(args.out / "log.txt", mode="a" if args.resume else "w")
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    # the file keeps the whole story (INFO) even when the terminal is quiet
-    handler.setLevel(min(log.getEffectiveLevel(), logging.INFO))
-    log.setLevel(handler.level)
-    log.addHandler(handler)
+    # the log of an unfinished run stays beside the checkpoints (a resumed run appends to it) and
+    # replaces log.txt when the run's outputs are written, so log.txt always belongs to map.papl
+    running_log = args.out / ".checkpoint" / "log.txt"
+    running_log.parent.mkdir(parents=True, exist_ok=True)
+    handler = _file_log(running_log, "a" if args.resume else "w")
     try:
         result = run_pipeline(
             args.recording,
@@ -87,12 +97,54 @@ def run(args: argparse.Namespace) -> int:
             resume=args.resume,
             progress=progress_bar,
         )
-    except KeyboardInterrupt:
-        log.error("interrupted: outputs are unchanged; rerun with --resume to reuse the decoded tracks")
-        raise
+    except RunInterrupted as exc:
+        message = f"papl-map run: {_interrupted(exc, args.out)}"
+        handler.handle(log.makeRecord(log.name, logging.ERROR, __file__, 0, message, None, None))
+        print(message, file=sys.stderr)
+        return 130
     finally:
         log.removeHandler(handler)
         handler.close()
+    os.replace(running_log, args.out / "log.txt")
+    handler = _file_log(args.out / "log.txt", "a")  # exports, previews and the report log there too
+    try:
+        _finish(args, cfg, result)
+    except KeyboardInterrupt:
+        print(
+            f"papl-map run: interrupted after the run: {args.out} holds the new map and its outputs; "
+            "exports, previews, report or evaluation may be missing",
+            file=sys.stderr,
+        )
+        return 130
+    finally:
+        log.removeHandler(handler)
+        handler.close()
+    return 0
+
+
+def _file_log(path: Path, mode: str) -> logging.Handler:
+    """A log file handler on the papl_mapper logger that keeps the whole story (INFO) even when quiet."""
+    handler = logging.FileHandler(path, mode=mode)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handler.setLevel(min(log.getEffectiveLevel(), logging.INFO))
+    log.setLevel(handler.level)
+    log.addHandler(handler)
+    return handler
+
+
+def _interrupted(exc: RunInterrupted, out: Path) -> str:
+    """The one line saying which stage Ctrl-C stopped and where --resume continues."""
+    from papl_mapper.pipelines.checkpoint import TITLES
+
+    if exc.resume_from is None:
+        then = "nothing was checkpointed yet, so --resume starts from the beginning"
+    else:
+        then = f"rerun with --resume to continue from the {TITLES[exc.resume_from]} checkpoint"
+    return f"interrupted in {exc.stage}: the outputs in {out} are unchanged; {then}"
+
+
+def _finish(args: argparse.Namespace, cfg, result) -> None:
+    """The one-line result, then the extras."""
     s = result.summary
     c = s["counts"]
     print(
@@ -102,7 +154,6 @@ def run(args: argparse.Namespace) -> int:
         f"{s['frames_lost']} of {s['recording']['frames']} frames without a pose"
     )
     _extras(args, cfg, result)
-    return 0
 
 
 def _extras(args: argparse.Namespace, cfg, result) -> None:
