@@ -3,7 +3,8 @@
 Every ground-truth segment is sampled along its length (each sample stands for its share of length)
 and each sample is followed through the stages:
 
-  visible       projects into some frame (GT pose, GT camera), in front, inside, not occluded
+  visible       in front, inside the image and not behind a scene quad in >= --min-frames GT frames
+                (papl_mapper.eval.visibility, as eval's line_recall_visible)
   detected      a frontend segment of that frame lies on the sample's projected GT line (angle and
                 distance gates) and its extent, carried back onto the 3D line, spans the sample
   tracked       ... by a segment whose track has >= min_views registered observations whose
@@ -17,6 +18,7 @@ and each sample is followed through the stages:
 Precision: every final line is called structural when most of its observations lie on a projected
 GT segment (2D gates as above), texture otherwise; the table gives each class's share of the map's
 line length and its precision. A counterfactual also triangulates the same tracks with GT poses.
+The same stages are also given as shares of the visible GT length: where the visible length is lost.
 
     .venv/bin/python benchmarks/line_diagnosis.py \
         /tmp/papl_accuracy/corridor_noise0_10s=/tmp/s10/corridor0.npz \
@@ -43,11 +45,10 @@ from papl_mapper.eval import evaluate
 from papl_mapper.eval.evaluate import load_ground_truth
 from papl_mapper.eval.lines import nearest_segment_distance
 from papl_mapper.eval.trajectory import umeyama, write_tum
+from papl_mapper.eval.visibility import DEFAULT_MIN_FRAMES, NEAR, scene_occluders, segment_visibility
 from papl_mapper.geometry.triangulation import observation_planes
 from papl_mapper.mapping.assemble import vp_directions_w
 from papl_mapper.mapping.lines import _plane_angle_deg
-from papl_mapper.synth.project import NEAR, _candidate_quads, occluded
-from papl_mapper.synth.scenes import make_scene
 from papl_mapper.tracks import Tracks
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,14 +56,6 @@ OUT = ROOT / "benchmarks" / "results" / "line_diagnosis.json"
 REL_TAUS = (0.005, 0.01, 0.02)
 MAX_ANGLE_DEG = 2.0  # detection vs projected GT segment
 MAX_DIST_PX = 2.0  # mean endpoint distance of a detection to the projected GT line
-VIS_EVERY = 3  # visibility is tested on every 3rd frame (occlusion tests are costly)
-
-
-def _project(K: np.ndarray, T_cw: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = Xc[:, :2] / Xc[:, 2:3] * [K[0, 0], K[1, 1]] + K[:2, 2]
-    return uv, Xc[:, 2]
 
 
 def _clip_segments(K, T_cw, ends):
@@ -134,11 +127,15 @@ def match_detections(K, T_wc, gt_ends, det_xy):
     return di, gi, np.sort(t, axis=1)
 
 
-def diagnose(folder: Path, tracks_path: Path, overrides: list[str], dump: Path | None = None) -> dict:
+def diagnose(
+    folder: Path,
+    tracks_path: Path,
+    overrides: list[str],
+    dump: Path | None = None,
+    min_frames: int = DEFAULT_MIN_FRAMES,
+) -> dict:
     """Run the mapping with probes and follow every GT sample through the stages."""
     tracks = Tracks.load(tracks_path)
-    scene_meta = json.loads((folder / "scene.json").read_text())
-    scene = make_scene(scene_meta["scene"], int(scene_meta.get("seed", 0)))
     gt = load_ground_truth(folder)
     gt_ends = gt.segments.endpoints[gt.segments.lengths() > 0]
     diag = float(np.ptp(gt_ends.reshape(-1, 3), axis=0).__pow__(2).sum() ** 0.5)
@@ -226,30 +223,19 @@ def diagnose(folder: Path, tracks_path: Path, overrides: list[str], dump: Path |
     triangulated = set(est.track.tolist())
     in_map = set(final_ids.tolist())
 
-    # --- GT samples
+    # --- GT samples: the pieces of the visibility clip (eval's), seen in >= min_frames GT frames
     spacing = 0.5 * taus[0]
-    L = np.linalg.norm(gt_ends[:, 1] - gt_ends[:, 0], axis=1)
-    pieces = np.maximum(1, np.ceil(L / spacing)).astype(int)
-    owner = np.repeat(np.arange(len(gt_ends)), pieces)
-    k = np.arange(len(owner)) - np.repeat(np.cumsum(pieces) - pieces, pieces)
-    frac = (k + 0.5) / np.repeat(pieces, pieces)
+    quads, occ_src = scene_occluders(gt.folder, gt_ends)
+    if quads is None:
+        print(f"warning: {occ_src}", file=sys.stderr)
+    vis = segment_visibility(gt_ends, tracks.camera, T_gt, spacing, quads)
+    owner = vis.owner
+    frac = 0.5 * (vis.t0 + vis.t1)
+    pieces = np.bincount(owner, minlength=len(gt_ends))
     X = gt_ends[owner, 0] + frac[:, None] * (gt_ends[owner, 1] - gt_ends[owner, 0])
-    w = (L / pieces)[owner]
+    w = vis.piece_lengths()
     seg_start = np.cumsum(pieces) - pieces
-
-    visible = np.zeros(len(X), bool)
-    for f in range(0, len(tracks), VIS_EVERY):
-        todo = np.flatnonzero(~visible)
-        if len(todo) == 0:
-            break
-        T_cw = np.linalg.inv(T_gt[f])
-        uv, z = _project(K, T_cw, X[todo])
-        inside = (z > NEAR) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= tracks.camera.width - 0.5)
-        inside &= (uv[:, 1] >= -0.5) & (uv[:, 1] <= tracks.camera.height - 0.5)
-        idx = todo[inside]
-        if len(idx):
-            occ = occluded(scene, T_gt[f][:3, 3], X[idx], _candidate_quads(scene, tracks.camera, T_gt[f]))
-            visible[idx[~occ]] = True
+    visible = vis.visible(min_frames)
 
     # per-stage 2D coverage, and the (sample, final line) pairs for the placement test
     stage_names = ("detected", "tracked", "triangulated", "in map")
@@ -331,6 +317,15 @@ def diagnose(folder: Path, tracks_path: Path, overrides: list[str], dump: Path |
         table[f"3D recall ({100 * r:g}%)"] = float(w[d3 <= t].sum() / total)
     for r, t in zip(REL_TAUS, taus, strict=True):  # the recall a metric over the seen GT would give
         table[f"3D recall of visible ({100 * r:g}%)"] = float(w[visible & (d3 <= t)].sum() / w[visible].sum())
+    # the same stages as shares of the visible length: where the length the camera saw is lost
+    wv = w[visible].sum()
+    table_vis = {"visible": 1.0}
+    for n in stage_names:
+        table_vis[n] = float(w[visible & covered[n]].sum() / wv)
+    for r, row in zip(REL_TAUS, on_line, strict=True):
+        table_vis[f"line placed ({100 * r:g}%)"] = float(w[visible & row].sum() / wv)
+    for r, t in zip(REL_TAUS, taus, strict=True):
+        table_vis[f"3D recall ({100 * r:g}%)"] = float(w[visible & (d3 <= t)].sum() / wv)
     by_axis = {}
     for a in np.unique(gt.segments.axis[gt.segments.lengths() > 0]):
         sel = gt.segments.axis[gt.segments.lengths() > 0][owner] == a
@@ -429,6 +424,9 @@ def diagnose(folder: Path, tracks_path: Path, overrides: list[str], dump: Path |
             "in map": len(in_map),
         },
         "recall_stages": table,
+        "visible_min_frames": min_frames,
+        "eval_recall_visible": ev.line_recall_visible,
+        "recall_stages_of_visible": table_vis,
         "recall_by_axis": by_axis,
         "recall_pre_ba_lines": pre,
         "gt_pose_triangulation": gt_pose_recall,
@@ -473,9 +471,10 @@ def _print(res: dict) -> None:
     print(f"\n== {res['scene']}  (ATE {100 * res['ate_rel_path']:.3f}% of path, map {res['map_s']} s)")
     print("GT-detecting tracks lost:", res["gt_tracks_lost"])
     print("line counts:", ", ".join(f"{k} {v}" for k, v in res["n_lines"].items()))
-    print(f"{'recall stage':<30}{'GT length share':>16}")
+    print(f"{'recall stage':<30}{'GT length share':>16}{'visible share':>15}")
     for k, v in res["recall_stages"].items():
-        print(f"{k:<30}{v:>16.3f}")
+        vis = res["recall_stages_of_visible"].get(k)
+        print(f"{k:<30}{v:>16.3f}" + (f"{vis:>15.3f}" if vis is not None else ""))
     if res["recall_pre_ba_lines"]:
         print("recall of the lines before BA:", res["recall_pre_ba_lines"])
     if res["gt_pose_triangulation"]:
@@ -522,6 +521,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--before", action="store_true", help=f"also run each scene with {' '.join(BEFORE)}")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--dump", help="folder for per-line arrays (npz) for further analysis")
+    ap.add_argument(
+        "--min-frames",
+        type=int,
+        default=DEFAULT_MIN_FRAMES,
+        help="GT frames a part of a segment must be seen in to count as visible (as eval)",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     results, befores, pairs = [], [], []
@@ -537,7 +542,7 @@ def main(argv: list[str] | None = None) -> int:
             _print(before)
             befores.append(before)
         dump = Path(args.dump) / f"{Path(folder).name}.npz" if args.dump else None
-        res = diagnose(Path(folder), Path(tracks), args.set, dump)
+        res = diagnose(Path(folder), Path(tracks), args.set, dump, args.min_frames)
         print("\n-- after (defaults)" + (f" with {' '.join(args.set)}" if args.set else ""))
         _print(res)
         results.append(res)

@@ -409,7 +409,7 @@ def _visible_line_part(
         return
     keep = gt.segments.lengths() > 0
     ends = gt.segments.endpoints[keep]
-    quads, occ_src = scene_occluders(gt.folder, ends)
+    quads, occ_src = scene_occluders(gt.folder, gt.segments.endpoints)
     taus = np.array(list(res.line_thresholds.values()))
     spacing = config.sample_spacing_rel * float(taus.min())
     vis = segment_visibility(ends, camera, T_wc, spacing, quads, gt.segments.axis[keep])
