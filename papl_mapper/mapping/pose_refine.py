@@ -56,8 +56,10 @@ class PoseRefineConfig:
     """Lines whose image is this close to degenerate (through the camera centre) are left out."""
     iterations: int = 10
     """Most Levenberg-Marquardt iterations."""
-    step_tol: float = 1e-9
-    """Stop when the update is smaller than this (radians / map units)."""
+    step_tol: float = 1e-8
+    """Stop when the update is smaller than this (radians / map units)..."""
+    cost_tol: float = 1e-6
+    """...or when a step lowers the cost by less than this fraction."""
 
 
 @dataclass
@@ -161,24 +163,29 @@ class _Problem:
     dirs_c: np.ndarray
     cfg: PoseRefineConfig
 
-    def blocks(self, T_cw: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, float]]:
-        """(residual (n, k), Jacobian (n, k, 6), sigma) per term; each residual row is one robust term."""
-        out = []
+    def blocks(
+        self, T_cw: np.ndarray, jacobian: bool = True
+    ) -> list[tuple[np.ndarray, np.ndarray | None, float]]:
+        """(residual (n, k), Jacobian (n, k, 6) or None, sigma) per term; one robust term per row."""
+        out: list[tuple[np.ndarray, np.ndarray | None, float]] = []
         if len(self.points_w):
-            r, J, _ = point_residuals(T_cw, self.points_w, self.uv, self.K, jacobian=True)
+            res = point_residuals(T_cw, self.points_w, self.uv, self.K, jacobian)
+            r, J = res[:2] if jacobian else (res, None)
             out.append((r, J, self.cfg.point_sigma_px))
         if len(self.L_w):
-            r, J = line_residuals(T_cw, self.L_w, self.line_xy, self.K, jacobian=True)
+            res = line_residuals(T_cw, self.L_w, self.line_xy, self.K, jacobian)
+            r, J = res if jacobian else (res, None)
             # each endpoint distance is its own robust term: (M, 2) -> (2M, 1)
-            out.append((r.reshape(-1, 1), J.reshape(-1, 1, 6), self.cfg.line_sigma_px))
+            out.append((r.reshape(-1, 1), None if J is None else J.reshape(-1, 1, 6), self.cfg.line_sigma_px))
         if len(self.dirs_w):
-            r, J = direction_residuals(T_cw, self.dirs_w, self.dirs_c, jacobian=True)
+            res = direction_residuals(T_cw, self.dirs_w, self.dirs_c, jacobian)
+            r, J = res if jacobian else (res, None)
             out.append((r, J, float(np.radians(self.cfg.direction_sigma_deg))))
         return out
 
     def cost(self, T_cw: np.ndarray) -> float:
         k = self.cfg.huber
-        return sum(_huber_cost(np.linalg.norm(r, axis=-1) / s, k) for r, _, s in self.blocks(T_cw))
+        return sum(_huber_cost(np.linalg.norm(r, axis=-1) / s, k) for r, _, s in self.blocks(T_cw, False))
 
     def normal_equations(self, T_cw: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         H = np.zeros((6, 6))
@@ -242,7 +249,7 @@ def refine_pose(
         return T, _final_stats(prob, T, T0, stats)
     H, g, cost = prob.normal_equations(T)
     stats.cost_initial = cost
-    lam = 1e-4 * max(float(np.mean(np.diag(H))), 1e-12)
+    lam = 1e-4  # Marquardt: relative to the diagonal of H
     for it in range(cfg.iterations):
         stats.iterations = it + 1
         try:
@@ -253,12 +260,13 @@ def refine_pose(
         new_cost = prob.cost(T_new)
         if new_cost < cost:
             T, lam = T_new, lam / 10.0
-            if np.linalg.norm(xi) < cfg.step_tol:
+            small = np.linalg.norm(xi) < cfg.step_tol or cost - new_cost < cfg.cost_tol * cost
+            if small:
                 break
             H, g, cost = prob.normal_equations(T)
         else:
             lam *= 10.0
-            if lam > 1e8 * max(float(np.mean(np.diag(H))), 1e-12):
+            if lam > 1e8:
                 break
     return T, _final_stats(prob, T, T0, stats)
 
@@ -397,3 +405,15 @@ class FrameRefiner:
         return refine_pose(
             T_cw, points_w, uv, self.K, lines_w=L_w, line_xy=xy, dirs_w=d_w, dirs_c=d_c, config=self.cfg
         )
+
+
+def directions_from_poses(
+    tracks: Tracks, T_cw: dict[int, np.ndarray], max_angle_deg: float = 3.0, min_support: int = 3
+) -> np.ndarray:
+    """World directions (A, 3) of the vanishing points of the frames registered so far (frame -> T_cw),
+    for tracking while the map has no axes yet (see `world_directions`)."""
+    frames = np.fromiter(T_cw, np.int64, len(T_cw))
+    if not len(frames):
+        return np.zeros((0, 3))
+    R_wc = np.swapaxes(np.stack([T_cw[int(f)][:3, :3] for f in frames]), -1, -2)
+    return world_directions(R_wc, tracks.vp_dirs_c[frames], max_angle_deg, min_support)

@@ -1,0 +1,185 @@
+"""ATE with and without each term of the tracking pose refinement (points / lines / vanishing directions).
+
+Two places use PnP: (a) registration of frames during incremental mapping (`incremental._pnp`) and
+(b) the pose of every non-keyframe after the global BA (`pipelines.run.frame_poses`, the all-frames
+trajectory ATE is measured on). Both are owned elsewhere, so this script monkeypatches them with the
+hooks described in mapping/pose_refine.py and measures:
+
+- b variants on one map per scene: none (OpenCV LM, today), points (our Huber LM, points only),
+  lines, dirs, all;
+- a variant (directions in registration, world directions from the registered keyframes), with b
+  none and b all.
+
+    .venv/bin/python benchmarks/pose_refine.py                      # the six cached 10 s scenes
+    .venv/bin/python benchmarks/pose_refine.py --scenes atlanta0 --no-a
+Writes benchmarks/results/pose_refine.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+from machine import machine_info
+from papl_mapper.pipelines import run as run_mod
+from papl_mapper.pipelines.config import RunConfig
+
+from papl_mapper.config import load_config
+from papl_mapper.eval import evaluate
+from papl_mapper.eval.trajectory import Trajectory, write_tum
+from papl_mapper.map import Map
+from papl_mapper.mapping import incremental as inc
+from papl_mapper.mapping.pose_refine import FrameRefiner, PoseRefineConfig, directions_from_poses
+from papl_mapper.mapping.tracking import track_pnp
+from papl_mapper.tracks import Tracks
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "benchmarks" / "results" / "pose_refine.json"
+SCENES = {
+    f"{s}{n}": (Path(f"/tmp/papl_accuracy/{s}_noise{n}_10s"), Path(f"/tmp/s10/{s}{n}.npz"))
+    for s in ("corridor", "atlanta", "garage")
+    for n in (0, 3)
+}
+B_VARIANTS = {
+    "none": None,
+    "points": PoseRefineConfig(lines=False, directions=False),
+    "lines": PoseRefineConfig(lines=True, directions=False),
+    "dirs": PoseRefineConfig(lines=False, directions=True),
+    "all": PoseRefineConfig(lines=True, directions=True),
+}
+
+
+def frame_poses_refined(
+    tracks: Tracks, m: Map, cfg: RunConfig, refine: PoseRefineConfig | None, timing: list[float]
+) -> dict[int, np.ndarray]:
+    """`pipelines.run.frame_poses` plus the hook (b): the lines marked `# hook` are the change."""
+    K = tracks.camera.K
+    kf = {int(k): T for k, T in zip(m.keyframes.ids, m.keyframes.T_wc, strict=True)}
+    pid = m.points.ids
+    refiner = FrameRefiner.from_map(tracks, m, refine) if refine is not None else None  # hook
+    out: dict[int, np.ndarray] = {}
+    last = None
+    for f in range(len(tracks)):
+        if f in kf:
+            T_wc = kf[f]
+        else:
+            ids, uv = tracks.points_in(f)
+            idx = np.minimum(np.searchsorted(pid, ids), max(len(pid) - 1, 0))
+            known = pid[idx] == ids if len(pid) else np.zeros(len(ids), bool)
+            guess = np.linalg.inv(last) if last is not None else None
+            res = track_pnp(m.points.xyz[idx[known]], uv[known], K, guess, cfg.mapping.pnp)
+            if not res.ok:
+                continue
+            T_cw = res.T_cw
+            if refiner is not None:  # hook
+                t0 = time.perf_counter()
+                X, x = m.points.xyz[idx[known]][res.inliers], uv[known][res.inliers]  # hook
+                T_cw, _ = refiner.refine(f, res.T_cw, X, x)  # hook
+                timing.append(time.perf_counter() - t0)
+            T_wc = np.linalg.inv(T_cw)
+        last = out[f] = T_wc
+    return out
+
+
+def make_pnp_with_directions(timing: list[float]):
+    """`incremental._pnp` plus the hook (a): world directions from the registered keyframes."""
+    cache: dict[int, tuple[int, np.ndarray]] = {}
+
+    def _pnp(tracks: Tracks, reg: inc.Registration, f: int, guess: np.ndarray, cfg: inc.IncrementalConfig):
+        ids, uv = tracks.points_in(f)
+        known = np.array([t in reg.points_w for t in ids.tolist()], bool)
+        if known.sum() < cfg.pnp.min_inliers:
+            return None, len(ids)
+        X = np.stack([reg.points_w[int(t)] for t in ids[known]])
+        n_kf, dirs_w = cache.get(id(reg), (-1, np.zeros((0, 3))))
+        if len(reg.T_cw) != n_kf:  # hook: world directions follow the registered keyframes
+            dirs_w = directions_from_poses(tracks, reg.T_cw)
+            cache[id(reg)] = (len(reg.T_cw), dirs_w)
+        t0 = time.perf_counter()
+        vp_c = tracks.vp_dirs_c[f]
+        res = track_pnp(X, uv[known], tracks.camera.K, guess, cfg.pnp, dirs_w=dirs_w, dirs_c=vp_c)
+        timing.append(time.perf_counter() - t0)
+        return res, len(ids)
+
+    return _pnp
+
+
+@contextlib.contextmanager
+def patched(obj, name: str, value):
+    old = getattr(obj, name)
+    setattr(obj, name, value)
+    try:
+        yield
+    finally:
+        setattr(obj, name, old)
+
+
+def _ate(folder: Path, tracks: Tracks, m: Map, poses: dict[int, np.ndarray], tmp: Path) -> dict:
+    frames = np.array(sorted(poses), np.int64)
+    T = np.array([poses[int(f)] for f in frames]).reshape(-1, 4, 4)
+    write_tum(tmp, Trajectory(tracks.timestamp[frames].astype(np.float64), T, "trajectory"))
+    ev = evaluate(folder, m, tmp)
+    return {
+        "ate_pct_path": 100 * ev.ate_rmse_rel_path,
+        "rpe_rot_deg": ev.rpe_rot_deg,
+        "posed": ev.n_matched_poses,
+        "frames": len(tracks),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--no-a", action="store_true", help="skip the registration hook (a)")
+    ap.add_argument("--set", nargs="*", default=[], help="config overrides key=value")
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    cfg = load_config(RunConfig, None, args.set)
+    tmp = Path("/tmp/pose_refine_bench.tum")
+    rows = []
+    for name in args.scenes.split(","):
+        folder, tpath = SCENES[name]
+        if not tpath.exists():
+            print(f"{name}: {tpath} missing, skipped")
+            continue
+        tracks = Tracks.load(tpath)
+        regs = [("a:none", None)] + ([] if args.no_a else [("a:dirs", make_pnp_with_directions)])
+        for a_name, make in regs:
+            t_a: list[float] = []
+            ctx = patched(inc, "_pnp", make(t_a)) if make else contextlib.nullcontext()
+            t0 = time.perf_counter()
+            with ctx:
+                m, _ = run_mod.map_tracks(tracks, cfg)
+            t_map = time.perf_counter() - t0
+            b_list = B_VARIANTS if a_name == "a:none" else {k: B_VARIANTS[k] for k in ("none", "all")}
+            for b_name, rc in b_list.items():
+                t_b: list[float] = []
+                poses = frame_poses_refined(tracks, m, cfg, rc, t_b)
+                row = {"scene": name, "a": a_name, "b": b_name, **_ate(folder, tracks, m, poses, tmp)}
+                row["map_s"] = round(t_map, 1)
+                row["b_refine_ms_per_frame"] = 1e3 * float(np.mean(t_b)) if t_b else None
+                row["a_pnp_ms_per_frame"] = 1e3 * float(np.mean(t_a)) if t_a else None
+                rows.append(row)
+                b_ms = f"{row['b_refine_ms_per_frame']:.2f}" if t_b else "-"
+                a_ms = f"{row['a_pnp_ms_per_frame']:.2f}" if t_a else "-"
+                print(
+                    f"{name:10s} {a_name:7s} b:{b_name:7s} ATE {row['ate_pct_path']:.3f}% "
+                    f"rpe_rot {row['rpe_rot_deg']:.3f} deg posed {row['posed']}/{row['frames']} "
+                    f"refine {b_ms} ms/frame, a-PnP {a_ms} ms/frame, map {t_map:.1f} s",
+                    flush=True,
+                )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(
+        json.dumps({"machine": machine_info(), "overrides": args.set, "rows": rows}, indent=1, default=float)
+    )
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
