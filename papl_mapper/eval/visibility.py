@@ -108,28 +108,42 @@ def occluded_intervals(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(lo (S, Q), hi (S, Q)): the open parameter range of each segment hidden from `centre` by each
     convex planar quad (Q, 4, 3) (corners in order around it); lo >= hi where it hides nothing."""
+    S, Q = len(endpoints_w), len(quads)
+    lo, hi = np.ones((S, Q)), np.zeros((S, Q))
+    si, qi, a, b = occluded_pairs(centre, quads, endpoints_w, margin)
+    lo[si, qi], hi[si, qi] = a, b
+    return lo, hi
+
+
+def occluded_pairs(
+    centre: np.ndarray, quads: np.ndarray, endpoints_w: np.ndarray, margin: float = OCCLUSION_MARGIN
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The (segment, quad) pairs where the quad hides part of the segment from `centre`, and that part:
+    (segment index (P,), quad index (P,), lo (P,), hi (P,)), the open range (lo, hi) of the parameter."""
     A = endpoints_w[:, 0]  # (S, 3)
     D = endpoints_w[:, 1] - A
-    rel = quads - centre  # (Q, 4, 3)
-    n_side = np.cross(rel, np.roll(rel, -1, axis=1))  # (Q, 4, 3) planes through the centre and each edge
-    mid = rel.mean(axis=1)  # (Q, 3)
-    n_side *= np.where(np.einsum("qij,qj->qi", n_side, mid) < 0, -1.0, 1.0)[..., None]  # quad inside
     n = np.cross(quads[:, 1] - quads[:, 0], quads[:, 3] - quads[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), _EPS)
     dc = np.einsum("qi,qi->q", n, centre - quads[:, 0])
     n *= np.where(dc > 0, -1.0, 1.0)[:, None]  # points away from the centre
-    # constraints c0 + t c1 > 0: four sides, then "beyond the plane by more than margin"
-    c0_side = np.einsum("qki,si->sqk", n_side, A - centre)  # (S, Q, 4)
-    c1_side = np.einsum("qki,si->sqk", n_side, D)
-    c0_pl = np.einsum("qi,sqi->sq", n, A[:, None] - quads[None, :, 0]) - margin
+    # "beyond the plane by more than margin" first: it rules out most pairs
+    c0_pl = A @ n.T - np.einsum("qi,qi->q", n, quads[:, 0])[None] - margin  # (S, Q)
     c1_pl = D @ n.T
-    c0 = np.concatenate([c0_side, c0_pl[..., None]], axis=2)
-    c1 = np.concatenate([c1_side, c1_pl[..., None]], axis=2)
+    beyond = (np.maximum(c0_pl, c0_pl + c1_pl) > 0) & (np.abs(dc) > 1e-9)[None]  # edge-on hides nothing
+    si, qi = np.nonzero(beyond)
+    if len(si) == 0:
+        e = np.zeros(0)
+        return si, qi, e, e
+    rel = quads - centre  # (Q, 4, 3)
+    n_side = np.cross(rel, np.roll(rel, -1, axis=1))  # (Q, 4, 3) planes through the centre and each edge
+    mid = rel.mean(axis=1)  # (Q, 3)
+    n_side *= np.where(np.einsum("qij,qj->qi", n_side, mid) < 0, -1.0, 1.0)[..., None]  # quad inside
+    ns = n_side[qi]  # (P, 4, 3)
+    c0 = np.concatenate([np.einsum("pki,pi->pk", ns, A[si] - centre), c0_pl[si, qi, None]], axis=1)
+    c1 = np.concatenate([np.einsum("pki,pi->pk", ns, D[si]), c1_pl[si, qi, None]], axis=1)
     lo, hi = _clip(c0, c1, strict=True)
-    edge_on = np.abs(dc) <= 1e-9  # the centre in the quad's plane: it hides nothing
-    lo[:, edge_on] = 1.0
-    hi[:, edge_on] = 0.0
-    return lo, hi
+    keep = lo < hi
+    return si[keep], qi[keep], lo[keep], hi[keep]
 
 
 def _clip(c0: np.ndarray, c1: np.ndarray, strict: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -199,11 +213,9 @@ def segment_visibility(
         if quads is not None and len(quads) and len(segs):
             q = _quads_near_view(camera, T, quads)
             if len(q):
-                olo, ohi = occluded_intervals(T[:3, 3], quads[q], ends[segs], margin)
-                si, _ = np.nonzero(olo < ohi)
+                si, _, a, b = occluded_pairs(T[:3, 3], quads[q], ends[segs], margin)
                 if len(si):
                     s = segs[si]
-                    a, b = olo[olo < ohi], ohi[olo < ohi]
                     # pieces of s with a < tm < b, tm = (k + 0.5) / n: k in (a n - 0.5, b n - 0.5)
                     k_lo = np.floor(a * pieces[s] - 0.5).astype(np.int64) + 1
                     k_hi = np.ceil(b * pieces[s] - 0.5).astype(np.int64)  # exclusive
