@@ -34,7 +34,7 @@ from papl_mapper.eval import evaluate
 from papl_mapper.eval.trajectory import Trajectory, write_tum
 from papl_mapper.map import Map
 from papl_mapper.mapping import incremental as inc
-from papl_mapper.mapping.pose_refine import FrameRefiner, PoseRefineConfig, directions_from_poses
+from papl_mapper.mapping.pose_refine import FrameRefiner, PoseRefineConfig, RegistrationDirections
 from papl_mapper.mapping.tracking import track_pnp
 from papl_mapper.tracks import Tracks
 
@@ -88,7 +88,7 @@ def frame_poses_refined(
 
 def make_pnp_with_directions(timing: list[float]):
     """`incremental._pnp` plus the hook (a): world directions from the registered keyframes."""
-    cache: dict[int, tuple[int, np.ndarray]] = {}
+    world_dirs: dict[int, RegistrationDirections] = {}
 
     def _pnp(tracks: Tracks, reg: inc.Registration, f: int, guess: np.ndarray, cfg: inc.IncrementalConfig):
         ids, uv = tracks.points_in(f)
@@ -96,10 +96,7 @@ def make_pnp_with_directions(timing: list[float]):
         if known.sum() < cfg.pnp.min_inliers:
             return None, len(ids)
         X = np.stack([reg.points_w[int(t)] for t in ids[known]])
-        n_kf, dirs_w = cache.get(id(reg), (-1, np.zeros((0, 3))))
-        if len(reg.T_cw) != n_kf:  # hook: world directions follow the registered keyframes
-            dirs_w = directions_from_poses(tracks, reg.T_cw)
-            cache[id(reg)] = (len(reg.T_cw), dirs_w)
+        dirs_w = world_dirs.setdefault(id(tracks), RegistrationDirections(tracks))(reg.T_cw)  # hook
         t0 = time.perf_counter()
         vp_c = tracks.vp_dirs_c[f]
         res = track_pnp(X, uv[known], tracks.camera.K, guess, cfg.pnp, dirs_w=dirs_w, dirs_c=vp_c)

@@ -11,7 +11,9 @@ from papl_mapper.map import Axes, Camera, Lines, LineState, Map
 from papl_mapper.mapping.pose_refine import (
     FrameRefiner,
     PoseRefineConfig,
+    RegistrationDirections,
     direction_residuals,
+    directions_from_poses,
     line_residuals,
     match_directions,
     point_residuals,
@@ -248,3 +250,15 @@ def test_track_pnp_with_refinement_terms() -> None:
     assert res.ok
     assert res.refine is not None and res.refine.n_directions == 3
     assert rotation_angle_deg(res.T_cw[:3, :3], T_true[:3, :3]) < MAX_ROT_NOISY_DEG
+
+
+def test_registration_directions_follow_keyframes() -> None:
+    T_true, _, uv, _, seg = _scene(seed=8)
+    tracks = _tracks_one_frame(T_true, uv, seg)
+    dirs = RegistrationDirections(tracks, min_support=1)
+    assert len(dirs({})) == 0
+    poses = {0: T_true}
+    est = dirs(poses)
+    np.testing.assert_allclose(np.abs(est @ AXES_W.T).max(1), 1.0, atol=1e-9)
+    assert dirs(poses) is est  # cached while no keyframe is added
+    assert len(directions_from_poses(tracks, poses, min_support=2)) == 0  # one frame: too little support

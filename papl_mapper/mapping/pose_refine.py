@@ -408,12 +408,38 @@ class FrameRefiner:
 
 
 def directions_from_poses(
-    tracks: Tracks, T_cw: dict[int, np.ndarray], max_angle_deg: float = 3.0, min_support: int = 3
+    tracks: Tracks,
+    T_cw: dict[int, np.ndarray],
+    max_angle_deg: float = 3.0,
+    min_support: int = 3,
+    max_frames: int = 150,
 ) -> np.ndarray:
     """World directions (A, 3) of the vanishing points of the frames registered so far (frame -> T_cw),
-    for tracking while the map has no axes yet (see `world_directions`)."""
-    frames = np.fromiter(T_cw, np.int64, len(T_cw))
+    for tracking while the map has no axes yet (see `world_directions`); at most `max_frames` frames
+    evenly spread over the registered ones are used, so the cost stays flat on long recordings."""
+    frames = np.sort(np.fromiter(T_cw, np.int64, len(T_cw)))
     if not len(frames):
         return np.zeros((0, 3))
+    if len(frames) > max_frames:
+        frames = frames[np.unique(np.linspace(0, len(frames) - 1, max_frames).round().astype(int))]
     R_wc = np.swapaxes(np.stack([T_cw[int(f)][:3, :3] for f in frames]), -1, -2)
     return world_directions(R_wc, tracks.vp_dirs_c[frames], max_angle_deg, min_support)
+
+
+class RegistrationDirections:
+    """World directions for tracking during registration, recomputed only when keyframes were added."""
+
+    def __init__(self, tracks: Tracks, max_angle_deg: float = 3.0, min_support: int = 3) -> None:
+        self.tracks = tracks
+        self.max_angle_deg = max_angle_deg
+        self.min_support = min_support
+        self._key: tuple[int, int] = (-1, -1)
+        self._dirs = np.zeros((0, 3))
+
+    def __call__(self, T_cw: dict[int, np.ndarray]) -> np.ndarray:
+        """(A, 3) world directions of the keyframes in T_cw (frame -> world-to-camera pose)."""
+        key = (id(T_cw), len(T_cw))
+        if key != self._key:
+            self._dirs = directions_from_poses(self.tracks, T_cw, self.max_angle_deg, self.min_support)
+            self._key = key
+        return self._dirs
