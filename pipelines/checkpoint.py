@@ -17,6 +17,7 @@ import logging
 import os
 import shutil
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,6 +71,7 @@ _REGISTRATION_FIELDS = {
     "revisits",
     "init_frames",
 }
+_REGISTRATION_OPTIONAL = {"first_view"}  # stored when Registration has it
 _REVISIT_FIELDS = {"frame", "T_cw", "pairs", "old_frame", "drift", "scale"}
 
 T = TypeVar("T")
@@ -121,6 +123,8 @@ class StageStore:
         self.latest: str | None = None
         """The latest stage whose result this run holds from a valid checkpoint (loaded or written)."""
         self.resumed: Resumed | None = None
+        self.written: dict[str, dict[str, float]] = {}
+        """Checkpoints written by this run: write time (s) and size (bytes) per stage."""
         self._recomputed = False
 
     @classmethod
@@ -183,6 +187,7 @@ class StageStore:
         if self.folder is None or stage not in self.keys:
             return None
         final = self.path(stage)
+        t0 = time.perf_counter()
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
             with _staging(self.folder, stage) as tmp:
@@ -196,11 +201,13 @@ class StageStore:
         except OSError as exc:
             log.warning("could not write the %s checkpoint in %s (%s)", TITLES[stage], self.folder, exc)
             return None
+        size = sum(p.stat().st_size for p in final.iterdir())
+        self.written[stage] = {"write_s": round(time.perf_counter() - t0, 4), "bytes": size}
         for old in self.folder.glob(f"{stage}-*"):
             if old != final and old.is_dir():
                 shutil.rmtree(old, ignore_errors=True)
         self.latest = stage
-        log.debug("checkpoint: %s in %s", TITLES[stage], final)
+        log.debug("checkpoint: %s in %s (%.1f MiB)", TITLES[stage], final, size / 2**20)
         return final
 
 
@@ -236,7 +243,8 @@ def registration_storable() -> bool:
     """Whether this module stores every field of Registration and Revisit (else no checkpoint)."""
     reg = {f.name for f in dataclasses.fields(Registration)}
     rv = {f.name for f in dataclasses.fields(Revisit)}
-    return reg == _REGISTRATION_FIELDS and rv == _REVISIT_FIELDS
+    known = _REGISTRATION_FIELDS <= reg <= _REGISTRATION_FIELDS | _REGISTRATION_OPTIONAL
+    return known and rv == _REVISIT_FIELDS
 
 
 def _dict_arrays(d: dict[int, Any], shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -253,6 +261,12 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
     ang_ids, ang = _dict_arrays(reg.point_angle, ())
     rv = reg.revisits
     pairs = [np.asarray(r.pairs, np.int64).reshape(-1, 2) for r in rv]
+    extra = {}
+    if hasattr(reg, "first_view"):
+        fv = reg.first_view
+        extra["first_view_ids"] = np.fromiter(fv, np.int64, len(fv))
+        extra["first_view_frame"] = np.array([f for f, _ in fv.values()], np.int64)
+        extra["first_view_uv"] = np.array([uv for _, uv in fv.values()], np.float64).reshape(-1, 2)
     np.savez(
         folder / "registration.npz",
         frames=np.asarray(reg.frames, np.int64),
@@ -274,6 +288,7 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
         revisit_n_pairs=np.array([len(p) for p in pairs], np.int64),
         revisit_pairs=np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64),
         point_track=tracks.point_track,
+        **extra,
     )
 
 
@@ -313,6 +328,13 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
         revisits=revisits,
         init_frames=(int(a["init_frames"][0]), int(a["init_frames"][1])),
     )
+    if hasattr(reg, "first_view"):
+        if "first_view_ids" not in a:
+            raise ValueError("made before registrations had first views")
+        reg.first_view = {
+            int(t): (int(f), uv)
+            for t, f, uv in zip(a["first_view_ids"], a["first_view_frame"], a["first_view_uv"], strict=True)
+        }
     if set(reg.frames) - set(reg.T_cw) or len(reg.frames) != len(reg.T_cw):
         raise ValueError("keyframes and keyframe poses disagree")
     return reg, a["point_track"]

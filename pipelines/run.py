@@ -212,6 +212,7 @@ def run(
             **stats,
             "timings_s": timer.times,
             "resumed": store.resumed.as_dict() if store.resumed else None,
+            "checkpoints_written": store.written,
             "per_frame": _per_frame(tracks),
         }
         timer.current = "writing outputs"

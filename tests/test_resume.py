@@ -10,6 +10,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import shutil
+import signal
+import subprocess
+import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,6 +33,7 @@ from papl_mapper.tracks import Tracks
 TINY = Path(__file__).resolve().parents[1] / "samples" / "tiny"
 FAST = ["--end", "1.2", "--set", "ba.max_iterations=3", "--set", "focal.enabled=false"]
 OUTPUTS = ("map.papl", "trajectory.tum", "keyframes.tum", "config.toml", "summary.json", "log.txt")
+SIGINT_WAIT_S = 60.0  # generous: the machine is shared; a run to the registration takes ~2 s
 POSE_TOL = 1e-9  # resumed vs uninterrupted: the same computation on the same numbers (seen: 0.0)
 
 
@@ -160,6 +165,29 @@ def test_interrupt_then_resume_matches_an_uninterrupted_run(stage, reference, tm
     _assert_same_map(reference, out)
 
 
+def test_a_real_ctrl_c_leaves_the_outputs_and_a_checkpoint_to_resume(reference, tmp_path):
+    """SIGINT to a `papl-map run` process right after its registration checkpoint appears."""
+    out = tmp_path / "out"
+    _copy(reference, out, ckpt.STAGES[:1])
+    before = {name: (out / name).read_bytes() for name in OUTPUTS}
+    args = [sys.executable, "-m", "papl_mapper.cli", "-q", "run", str(TINY / "video.mp4")]
+    args += ["--camera", str(TINY / "camera.json"), "--out", str(out), "--resume", *FAST]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + SIGINT_WAIT_S
+    while not list((out / ".checkpoint").glob("registration-*")) and proc.poll() is None:
+        assert time.monotonic() < deadline, "no registration checkpoint appeared"
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=SIGINT_WAIT_S)
+    assert proc.returncode == 130, err
+    assert err.count("\n") == 1 and "interrupted in " in err and "--resume" in err, err
+    assert {name: (out / name).read_bytes() for name in OUTPUTS} == before
+    assert not list((out / ".checkpoint").glob(".*"))
+    assert _run(out) == 0
+    assert _summary(out)["resumed"]["stage"] in ("registration", "ba_points", "ba_full")
+    _assert_same_map(reference, out)
+
+
 @pytest.mark.parametrize(
     ("override", "resumed"),
     [
@@ -190,6 +218,7 @@ def test_a_config_change_reuses_only_the_stages_before_it(override, resumed, ref
         ("registration", "registration.npz", b"\x00" * 64, "frontend"),
         ("ba_points", "stage.json", b"{not json", "registration"),
     ],
+    ids=["truncated-map", "zeroed-registration", "bad-stage-json"],
 )
 def test_a_corrupt_checkpoint_is_ignored_with_a_log_line(stage, name, data, resumed, reference, tmp_path):
     out = tmp_path / "out"
@@ -301,7 +330,7 @@ def _registration(rng: np.random.Generator) -> Registration:
         T[:3, 3] = rng.normal(size=3)
         return T
 
-    return Registration(
+    reg = Registration(
         frames=[0, 3, 1],
         T_cw={0: pose(), 3: pose(), 1: pose()},
         points_w={7: rng.normal(size=3), 2: rng.normal(size=3)},
@@ -314,6 +343,9 @@ def _registration(rng: np.random.Generator) -> Registration:
         ],
         init_frames=(0, 3),
     )
+    if hasattr(reg, "first_view"):  # registrations that remember each track's first keyframe view
+        reg.first_view = {5: (3, rng.normal(size=2)), 2: (0, rng.normal(size=2))}
+    return reg
 
 
 def test_registration_round_trip_keeps_order_revisits_and_renamed_tracks(tmp_path):
@@ -329,6 +361,10 @@ def test_registration_round_trip_keeps_order_revisits_and_renamed_tracks(tmp_pat
         a, b = getattr(reg, name), getattr(back, name)
         assert list(a) == list(b), name  # insertion order too
         assert all(np.array_equal(a[k], b[k]) for k in a), name
+    if hasattr(reg, "first_view"):
+        assert list(reg.first_view) == list(back.first_view)
+        for k, (f, uv) in reg.first_view.items():
+            assert back.first_view[k][0] == f and np.array_equal(back.first_view[k][1], uv)
     for a, b in zip(reg.revisits, back.revisits, strict=True):
         assert (a.frame, a.old_frame, a.scale) == (b.frame, b.old_frame, b.scale)
         assert np.array_equal(a.T_cw, b.T_cw) and np.array_equal(a.pairs.reshape(-1, 2), b.pairs)
