@@ -34,7 +34,12 @@ from papl_mapper.eval import evaluate
 from papl_mapper.eval.trajectory import Trajectory, write_tum
 from papl_mapper.map import Map
 from papl_mapper.mapping import incremental as inc
-from papl_mapper.mapping.pose_refine import FrameRefiner, PoseRefineConfig, RegistrationDirections
+from papl_mapper.mapping.pose_refine import (
+    FrameRefiner,
+    PoseRefineConfig,
+    RegistrationDirections,
+    frame_directions,
+)
 from papl_mapper.mapping.tracking import track_pnp
 from papl_mapper.tracks import Tracks
 
@@ -86,7 +91,7 @@ def frame_poses_refined(
     return out
 
 
-def make_pnp_with_directions(timing: list[float]):
+def make_pnp_with_directions(timing: list[float], vertical_only: bool = False):
     """`incremental._pnp` plus the hook (a): world directions from the registered keyframes."""
     world_dirs: dict[int, RegistrationDirections] = {}
 
@@ -96,9 +101,11 @@ def make_pnp_with_directions(timing: list[float]):
         if known.sum() < cfg.pnp.min_inliers:
             return None, len(ids)
         X = np.stack([reg.points_w[int(t)] for t in ids[known]])
-        dirs_w = world_dirs.setdefault(id(tracks), RegistrationDirections(tracks))(reg.T_cw)  # hook
+        dirs_w = world_dirs.setdefault(
+            id(tracks), RegistrationDirections(tracks, vertical_only=vertical_only)
+        )(reg.T_cw)  # hook
         t0 = time.perf_counter()
-        vp_c = tracks.vp_dirs_c[f]
+        vp_c = frame_directions(tracks, f, vertical_only)  # hook
         res = track_pnp(X, uv[known], tracks.camera.K, guess, cfg.pnp, dirs_w=dirs_w, dirs_c=vp_c)
         timing.append(time.perf_counter() - t0)
         return res, len(ids)
@@ -133,6 +140,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--no-a", action="store_true", help="skip the registration hook (a)")
+    ap.add_argument("--a-sigmas", default="0.5", help="direction sigmas (deg) of (a) to try, comma-separated")
+    ap.add_argument("--a-vertical", action="store_true", help="also try (a) with the vertical direction only")
+    ap.add_argument("--b", default=",".join(B_VARIANTS), help="b variants on the baseline map")
     ap.add_argument("--set", nargs="*", default=[], help="config overrides key=value")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
@@ -146,15 +156,28 @@ def main() -> None:
             print(f"{name}: {tpath} missing, skipped")
             continue
         tracks = Tracks.load(tpath)
-        regs = [("a:none", None)] + ([] if args.no_a else [("a:dirs", make_pnp_with_directions)])
-        for a_name, make in regs:
+        regs: list[tuple[str, bool | None, float]] = [("a:none", None, 0.0)]
+        if not args.no_a:
+            for sig in (float(x) for x in args.a_sigmas.split(",")):
+                regs.append((f"a:dirs{sig:g}", False, sig))
+                if args.a_vertical:
+                    regs.append((f"a:vert{sig:g}", True, sig))
+        for a_name, vertical, sigma in regs:
             t_a: list[float] = []
-            ctx = patched(inc, "_pnp", make(t_a)) if make else contextlib.nullcontext()
+            ctx = (
+                patched(inc, "_pnp", make_pnp_with_directions(t_a, vertical))
+                if vertical is not None
+                else None
+            )
+            a_cfg = load_config(
+                RunConfig, None, [*args.set, f"mapping.pnp.refine.direction_sigma_deg={sigma}"]
+            )
             t0 = time.perf_counter()
-            with ctx:
-                m, _ = run_mod.map_tracks(tracks, cfg)
+            with ctx or contextlib.nullcontext():
+                m, _ = run_mod.map_tracks(tracks, a_cfg if vertical is not None else cfg)
             t_map = time.perf_counter() - t0
-            b_list = B_VARIANTS if a_name == "a:none" else {k: B_VARIANTS[k] for k in ("none", "all")}
+            b_names = args.b.split(",") if vertical is None else ["none", "all"]
+            b_list = {k: B_VARIANTS[k] for k in b_names}
             for b_name, rc in b_list.items():
                 t_b: list[float] = []
                 poses = frame_poses_refined(tracks, m, cfg, rc, t_b)

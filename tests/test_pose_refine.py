@@ -14,6 +14,7 @@ from papl_mapper.mapping.pose_refine import (
     RegistrationDirections,
     direction_residuals,
     directions_from_poses,
+    frame_directions,
     line_residuals,
     match_directions,
     point_residuals,
@@ -262,3 +263,16 @@ def test_registration_directions_follow_keyframes() -> None:
     np.testing.assert_allclose(np.abs(est @ AXES_W.T).max(1), 1.0, atol=1e-9)
     assert dirs(poses) is est  # cached while no keyframe is added
     assert len(directions_from_poses(tracks, poses, min_support=2)) == 0  # one frame: too little support
+
+
+def test_vertical_only_uses_the_vertical_direction() -> None:
+    T_true, X_w, uv, _, seg = _scene(seed=9)
+    tracks = _tracks_one_frame(T_true, uv, seg)  # vp 0 is world X; make it the vertical one for the test
+    np.testing.assert_allclose(frame_directions(tracks, 0, vertical_only=True), tracks.vp_dirs_c[0, [0]])
+    m = Map(tracks.camera)
+    m.axes = Axes(AXES_W.copy(), 0)
+    ref = FrameRefiner.from_map(tracks, m, PoseRefineConfig(vertical_only=True, lines=False))
+    _, st = ref.refine(0, T_true, X_w, uv)
+    assert st.n_directions == 1
+    est = directions_from_poses(tracks, {0: T_true}, min_support=1, vertical_only=True)
+    np.testing.assert_allclose(np.abs(est), AXES_W[[0]], atol=1e-9)

@@ -50,6 +50,8 @@ class PoseRefineConfig:
     """Standard deviation of the angle between a vanishing direction and its world direction."""
     huber: float = 2.0
     """Huber threshold in units of each term's sigma (errors beyond it count linearly)."""
+    vertical_only: bool = False
+    """Use only the vertical vanishing direction (the frame's `vertical_vp`, the map's vertical axis)."""
     match_direction_deg: float = 3.0
     """A camera vanishing direction matches the nearest world direction within this angle."""
     min_line_norm: float = 1e-3
@@ -379,7 +381,11 @@ class FrameRefiner:
     @classmethod
     def from_map(cls, tracks: Tracks, m: Map, config: PoseRefineConfig | None = None) -> FrameRefiner:
         """Lines (ids = line track ids) and axis directions of a finished map."""
-        return cls(tracks, m.lines.ids, m.lines.endpoints_w, m.axes.directions, config)
+        cfg = config or PoseRefineConfig()
+        dirs = m.axes.directions
+        if cfg.vertical_only:
+            dirs = dirs[[m.axes.vertical_index]] if m.axes.vertical_index >= 0 else np.zeros((0, 3))
+        return cls(tracks, m.lines.ids, m.lines.endpoints_w, dirs, cfg)
 
     def frame_lines(self, f: int) -> tuple[np.ndarray, np.ndarray]:
         """World Pluecker lines (M, 6) and observed segments (M, 4) of the map lines seen in frame f."""
@@ -400,11 +406,19 @@ class FrameRefiner:
         L_w, xy = self.frame_lines(f) if self.cfg.lines else (None, None)
         d_w, d_c = None, None
         if self.cfg.directions:
-            vp_c = self.tracks.vp_dirs_c[f]
+            vp_c = frame_directions(self.tracks, f, self.cfg.vertical_only)
             d_w, d_c = match_directions(T_cw[:3, :3], self.dirs_w, vp_c, self.cfg.match_direction_deg)
         return refine_pose(
             T_cw, points_w, uv, self.K, lines_w=L_w, line_xy=xy, dirs_w=d_w, dirs_c=d_c, config=self.cfg
         )
+
+
+def frame_directions(tracks: Tracks, f: int, vertical_only: bool = False) -> np.ndarray:
+    """Camera vanishing directions (V, 3) of frame f (NaN rows where absent), or only its vertical one."""
+    if not vertical_only:
+        return tracks.vp_dirs_c[f]
+    v = int(tracks.vertical_vp[f]) if len(tracks.vertical_vp) else -1
+    return tracks.vp_dirs_c[f, [v]] if v >= 0 else np.zeros((0, 3))
 
 
 def directions_from_poses(
@@ -413,6 +427,7 @@ def directions_from_poses(
     max_angle_deg: float = 3.0,
     min_support: int = 3,
     max_frames: int = 150,
+    vertical_only: bool = False,
 ) -> np.ndarray:
     """World directions (A, 3) of the vanishing points of the frames registered so far (frame -> T_cw),
     for tracking while the map has no axes yet (see `world_directions`); at most `max_frames` frames
@@ -423,14 +438,21 @@ def directions_from_poses(
     if len(frames) > max_frames:
         frames = frames[np.unique(np.linspace(0, len(frames) - 1, max_frames).round().astype(int))]
     R_wc = np.swapaxes(np.stack([T_cw[int(f)][:3, :3] for f in frames]), -1, -2)
-    return world_directions(R_wc, tracks.vp_dirs_c[frames], max_angle_deg, min_support)
+    d_c = tracks.vp_dirs_c[frames]
+    if vertical_only:
+        v = tracks.vertical_vp[frames] if len(tracks.vertical_vp) else np.full(len(frames), -1)
+        d_c = np.where((np.arange(d_c.shape[1])[None, :] == v[:, None])[..., None], d_c, np.nan)
+    return world_directions(R_wc, d_c, max_angle_deg, min_support)
 
 
 class RegistrationDirections:
     """World directions for tracking during registration, recomputed only when keyframes were added."""
 
-    def __init__(self, tracks: Tracks, max_angle_deg: float = 3.0, min_support: int = 3) -> None:
+    def __init__(
+        self, tracks: Tracks, max_angle_deg: float = 3.0, min_support: int = 3, vertical_only: bool = False
+    ) -> None:
         self.tracks = tracks
+        self.vertical_only = vertical_only
         self.max_angle_deg = max_angle_deg
         self.min_support = min_support
         self._key: tuple[int, int] = (-1, -1)
@@ -440,6 +462,8 @@ class RegistrationDirections:
         """(A, 3) world directions of the keyframes in T_cw (frame -> world-to-camera pose)."""
         key = (id(T_cw), len(T_cw))
         if key != self._key:
-            self._dirs = directions_from_poses(self.tracks, T_cw, self.max_angle_deg, self.min_support)
+            self._dirs = directions_from_poses(
+                self.tracks, T_cw, self.max_angle_deg, self.min_support, vertical_only=self.vertical_only
+            )
             self._key = key
         return self._dirs
