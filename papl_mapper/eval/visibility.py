@@ -9,7 +9,8 @@ Per frame and segment everything is an exact interval along the segment (its poi
 the segment parameter t): the view frustum is five half-spaces, and the region hidden by a convex
 planar quad is the pyramid from the camera centre through its edges beyond the quad's plane (by more
 than `margin`, so a segment lying on a quad is not hidden by it). Pieces only turn those intervals
-into lengths; a visible length is exact to within a piece at each end of a visible run.
+into lengths; a visible length is exact to within a piece at each end of a visible run. The camera is
+taken as a pinhole (lens distortion moves the image border a little; the synthetic recordings have none).
 """
 
 from __future__ import annotations
