@@ -82,7 +82,7 @@ class RunResult:
 class RunInterrupted(KeyboardInterrupt):
     """Ctrl-C during `run`: the stage it stopped, and the latest checkpoint `--resume` continues from."""
 
-    def __init__(self, stage: str, resume_from: str | None, checkpoint_dir: Path | None) -> None:
+    def __init__(self, stage: str, resume_from: str | None, checkpoint_dir: Path) -> None:
         super().__init__(stage)
         self.stage = stage
         self.resume_from = resume_from
@@ -142,22 +142,24 @@ def run(
     recording, out = Path(recording), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     timer = _Timer()
-    rec = open_recording(recording, step, start_s, end_s, max_size)
-    cam_src = camera_for_recording(camera_file, rec.width, rec.height, cfg.hfov_deg)
-    sha = _sha256(recording)
-    key = json.dumps(
-        {
-            "input": sha,
-            "frontend": config_to_dict(cfg.frontend),
-            "camera": cam_src.camera.to_dict(),
-            "range": [start_s, end_s, step, max_size],
-            "format": ckpt.FORMAT_VERSION,
-        },
-        sort_keys=True,
-        default=str,
-    )
-    store = StageStore(out / ".checkpoint", key, resume)
+    timer.current = "reading the input"
+    store: StageStore | None = None
     try:
+        rec = open_recording(recording, step, start_s, end_s, max_size)
+        cam_src = camera_for_recording(camera_file, rec.width, rec.height, cfg.hfov_deg)
+        sha = _sha256(recording)
+        key = json.dumps(
+            {
+                "input": sha,
+                "frontend": config_to_dict(cfg.frontend),
+                "camera": cam_src.camera.to_dict(),
+                "range": [start_s, end_s, step, max_size],
+                "format": ckpt.FORMAT_VERSION,
+            },
+            sort_keys=True,
+            default=str,
+        )
+        store = StageStore(out / ".checkpoint", key, resume)
         loaded = store.load("frontend", ckpt.read_tracks)
         if loaded is None:
             fstats = FrontendStats()
@@ -218,7 +220,8 @@ def run(
         timer.current = "writing outputs"
         _write_outputs(out, m, traj, cfg, summary)
     except KeyboardInterrupt as exc:
-        raise RunInterrupted(timer.current or "between stages", store.latest, store.folder) from exc
+        latest = store.latest if store is not None else None
+        raise RunInterrupted(timer.current or "between stages", latest, out / ".checkpoint") from exc
     return RunResult(out, m, summary)
 
 
