@@ -218,6 +218,7 @@ def _staging(folder: Path, stage: str) -> Iterator[Path]:
         shutil.rmtree(stale, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{stage}-", suffix=".tmp", dir=folder))
     try:
+        os.chmod(tmp, folder.stat().st_mode & 0o777)  # mkdtemp's 0700 -> as open as its parent
         yield tmp
     finally:
         if tmp.exists():
