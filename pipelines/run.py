@@ -490,7 +490,8 @@ def _per_frame(tracks: Tracks) -> dict[str, list[int]]:
 
 def _write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary: dict[str, Any]) -> None:
     """Every output is written under a temporary name first, then all are renamed (the map last), so an
-    interruption while writing leaves the previous run's outputs, not a mix of two runs."""
+    interruption while writing leaves the previous run's outputs, not a mix of two runs (only a Ctrl-C
+    landing between two of the five renames, a window of microseconds, could still mix them)."""
     with contextlib.ExitStack() as stack:
         # contexts close in reverse: the map, entered first, is renamed last
         tmp = {name: stack.enter_context(atomic_path(out / name)) for name in reversed(OUTPUT_FILES)}
