@@ -101,12 +101,15 @@ def make_pnp_with_directions(timing: list[float], vertical_only: bool = False):
         if known.sum() < cfg.pnp.min_inliers:
             return None, len(ids)
         X = np.stack([reg.points_w[int(t)] for t in ids[known]])
-        dirs_w = world_dirs.setdefault(
-            id(tracks), RegistrationDirections(tracks, vertical_only=vertical_only)
-        )(reg.T_cw)  # hook
+        if id(tracks) not in world_dirs:
+            world_dirs[id(tracks)] = RegistrationDirections(tracks, vertical_only=vertical_only)  # hook
+        dirs_w, sigma = world_dirs[id(tracks)](reg.T_cw)  # hook
         t0 = time.perf_counter()
         vp_c = frame_directions(tracks, f, vertical_only)  # hook
-        res = track_pnp(X, uv[known], tracks.camera.K, guess, cfg.pnp, dirs_w=dirs_w, dirs_c=vp_c)
+        K = tracks.camera.K
+        res = track_pnp(
+            X, uv[known], K, guess, cfg.pnp, dirs_w=dirs_w, dirs_c=vp_c, dirs_sigma_deg=sigma
+        )  # hook
         timing.append(time.perf_counter() - t0)
         return res, len(ids)
 

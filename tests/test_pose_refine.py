@@ -13,6 +13,7 @@ from papl_mapper.mapping.pose_refine import (
     PoseRefineConfig,
     RegistrationDirections,
     direction_residuals,
+    direction_spread_deg,
     directions_from_poses,
     frame_directions,
     line_residuals,
@@ -173,10 +174,11 @@ def test_match_directions_is_sign_free_and_skips_nan() -> None:
     T_cw = _camera_pose()
     d_c = np.vstack([_dirs_c(T_cw)[[2, 0]], np.full((1, 3), np.nan)])
     R_guess = so3_exp(np.radians([1.0, 0.5, 0.0])) @ T_cw[:3, :3]
-    w, c = match_directions(R_guess, AXES_W, d_c, max_angle_deg=3.0)
+    w, c, idx = match_directions(R_guess, AXES_W, d_c, max_angle_deg=3.0)
     np.testing.assert_allclose(w, AXES_W[[2, 0]])
     np.testing.assert_allclose(c, d_c[:2])
-    w, _ = match_directions(R_guess, AXES_W, d_c, max_angle_deg=0.2)
+    np.testing.assert_array_equal(idx, [2, 0])
+    w, _, _ = match_directions(R_guess, AXES_W, d_c, max_angle_deg=0.2)
     assert len(w) == 0
 
 
@@ -189,10 +191,13 @@ def test_world_directions_from_drifting_keyframes() -> None:
     noise = so3_exp(rng.normal(0, np.radians(0.3), (n, 3)))
     d_c = np.einsum("nji,vj->nvi", R_wc @ noise, axes_w) * rng.choice([-1.0, 1.0], (n, 3, 1))
     d_c[::4, 2] = np.nan  # the third direction is missing in some frames
-    est = world_directions(R_wc, d_c, max_angle_deg=2.0)
+    est, spread = world_directions(R_wc, d_c, max_angle_deg=2.0)
     assert len(est) == 3
     ang = np.degrees(np.arccos(np.clip(np.abs(est @ axes_w.T), 0, 1))).min(0)
     assert np.all(ang < 0.3)
+    # each direction moves by a 2D Gaussian of 0.3 deg per tangent axis: the spread estimates that sigma
+    np.testing.assert_allclose(spread, 0.3, atol=0.1)
+    np.testing.assert_allclose(direction_spread_deg(est, R_wc, d_c, 2.0), spread, atol=1e-9)
 
 
 def _tracks_one_frame(T_cw: np.ndarray, uv: np.ndarray, seg: np.ndarray) -> Tracks:
@@ -257,12 +262,13 @@ def test_registration_directions_follow_keyframes() -> None:
     T_true, _, uv, _, seg = _scene(seed=8)
     tracks = _tracks_one_frame(T_true, uv, seg)
     dirs = RegistrationDirections(tracks, min_support=1)
-    assert len(dirs({})) == 0
+    assert len(dirs({})[0]) == 0
     poses = {0: T_true}
     est = dirs(poses)
-    np.testing.assert_allclose(np.abs(est @ AXES_W.T).max(1), 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.abs(est[0] @ AXES_W.T).max(1), 1.0, atol=1e-9)
+    np.testing.assert_allclose(est[1], 0.0, atol=1e-5)
     assert dirs(poses) is est  # cached while no keyframe is added
-    assert len(directions_from_poses(tracks, poses, min_support=2)) == 0  # one frame: too little support
+    assert len(directions_from_poses(tracks, poses, min_support=2)[0]) == 0  # one frame: too little support
 
 
 def test_vertical_only_uses_the_vertical_direction() -> None:
@@ -274,5 +280,21 @@ def test_vertical_only_uses_the_vertical_direction() -> None:
     ref = FrameRefiner.from_map(tracks, m, PoseRefineConfig(vertical_only=True, lines=False))
     _, st = ref.refine(0, T_true, X_w, uv)
     assert st.n_directions == 1
-    est = directions_from_poses(tracks, {0: T_true}, min_support=1, vertical_only=True)
+    est, _ = directions_from_poses(tracks, {0: T_true}, min_support=1, vertical_only=True)
     np.testing.assert_allclose(np.abs(est), AXES_W[[0]], atol=1e-9)
+
+
+def test_scattered_direction_gets_its_own_sigma() -> None:
+    """A direction whose vanishing points scatter (sigma 3 deg) must not pull the pose as hard as one
+    known to 0.5 deg: with the per-direction sigma the biased direction moves the rotation less."""
+    T_true, X_w, uv, _, _ = _scene(n_pts=30, n_lines=0, seed=10)
+    d_c = _dirs_c(T_true)
+    d_c[0] = so3_exp(np.radians([0.0, 2.0, 0.0])) @ d_c[0]  # one direction 2 deg off
+    cfg = PoseRefineConfig(iterations=30)
+    T_fixed, _ = refine_pose(T_true, X_w, uv, K, dirs_w=AXES_W, dirs_c=d_c, config=cfg)
+    T_own, _ = refine_pose(
+        T_true, X_w, uv, K, dirs_w=AXES_W, dirs_c=d_c, dirs_sigma_deg=np.array([3.0, np.nan, 0.1]), config=cfg
+    )
+    err_fixed = rotation_angle_deg(T_fixed[:3, :3], T_true[:3, :3])
+    err_own = rotation_angle_deg(T_own[:3, :3], T_true[:3, :3])
+    assert err_own < 0.5 * err_fixed

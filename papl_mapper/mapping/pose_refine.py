@@ -47,7 +47,8 @@ class PoseRefineConfig:
     line_sigma_px: float = 1.0
     """Standard deviation of an endpoint's distance to its projected line."""
     direction_sigma_deg: float = 0.5
-    """Standard deviation of the angle between a vanishing direction and its world direction."""
+    """Standard deviation of the angle between a vanishing direction and its world direction (the
+    smallest one: a direction whose vanishing points scatter more gets its own, larger sigma)."""
     huber: float = 2.0
     """Huber threshold in units of each term's sigma (errors beyond it count linearly)."""
     vertical_only: bool = False
@@ -163,13 +164,15 @@ class _Problem:
     line_xy: np.ndarray
     dirs_w: np.ndarray
     dirs_c: np.ndarray
+    dirs_sigma_rad: np.ndarray  # (D,)
     cfg: PoseRefineConfig
 
     def blocks(
         self, T_cw: np.ndarray, jacobian: bool = True
-    ) -> list[tuple[np.ndarray, np.ndarray | None, float]]:
-        """(residual (n, k), Jacobian (n, k, 6) or None, sigma) per term; one robust term per row."""
-        out: list[tuple[np.ndarray, np.ndarray | None, float]] = []
+    ) -> list[tuple[np.ndarray, np.ndarray | None, float | np.ndarray]]:
+        """(residual (n, k), Jacobian (n, k, 6) or None, sigma or (n,) sigmas) per term; one robust
+        term per row."""
+        out: list[tuple[np.ndarray, np.ndarray | None, float | np.ndarray]] = []
         if len(self.points_w):
             res = point_residuals(T_cw, self.points_w, self.uv, self.K, jacobian)
             r, J = res[:2] if jacobian else (res, None)
@@ -182,7 +185,7 @@ class _Problem:
         if len(self.dirs_w):
             res = direction_residuals(T_cw, self.dirs_w, self.dirs_c, jacobian)
             r, J = res if jacobian else (res, None)
-            out.append((r, J, float(np.radians(self.cfg.direction_sigma_deg))))
+            out.append((r, J, self.dirs_sigma_rad))
         return out
 
     def cost(self, T_cw: np.ndarray) -> float:
@@ -220,11 +223,13 @@ def refine_pose(
     line_xy: np.ndarray | None = None,
     dirs_w: np.ndarray | None = None,
     dirs_c: np.ndarray | None = None,
+    dirs_sigma_deg: np.ndarray | None = None,
     config: PoseRefineConfig | None = None,
 ) -> tuple[np.ndarray, RefineStats]:
     """Refine a world-to-camera pose by robust LM on points (N,3)/(N,2) px, lines (M,2,3) world endpoints
     or (M,6) Pluecker with observed segments (M,4) px, and matched directions d_w (D,3) / d_c (D,3).
 
+    `dirs_sigma_deg` (D,) are per-direction sigmas (at least the config's; NaN = the config's).
     Returns the refined T_cw and the statistics; the input pose comes back when nothing improves it.
     """
     cfg = config or PoseRefineConfig()
@@ -244,7 +249,10 @@ def refine_pose(
         dirs_c = np.asarray(dirs_c, np.float64).reshape(-1, 3)
     else:
         dirs_w, dirs_c = np.zeros((0, 3)), np.zeros((0, 3))
-    prob = _Problem(K, points_w, uv, L_w, line_xy, dirs_w, dirs_c, cfg)
+    sig = np.full(len(dirs_w), cfg.direction_sigma_deg)
+    if dirs_sigma_deg is not None and len(dirs_w):
+        sig = np.fmax(sig, np.asarray(dirs_sigma_deg, np.float64).reshape(-1))
+    prob = _Problem(K, points_w, uv, L_w, line_xy, dirs_w, dirs_c, np.radians(sig), cfg)
     stats = RefineStats(n_points=len(points_w), n_lines=len(L_w), n_directions=len(dirs_w))
     T = T0.copy()
     if len(points_w) + len(L_w) + len(dirs_w) == 0:
@@ -299,14 +307,15 @@ def _final_stats(prob: _Problem, T: np.ndarray, T0: np.ndarray, stats: RefineSta
 
 def match_directions(
     R_cw: np.ndarray, dirs_w: np.ndarray, dirs_c: np.ndarray, max_angle_deg: float
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pairs (world, camera) of directions whose sign-free angle under R_cw is the smallest for both
-    and under `max_angle_deg`; camera rows that are NaN are skipped. Returns (D, 3), (D, 3)."""
+    and under `max_angle_deg`; camera rows that are NaN are skipped. Returns the matched world
+    directions (D, 3), camera directions (D, 3) and the rows of the world ones in dirs_w (D,)."""
     dirs_c = np.asarray(dirs_c, np.float64).reshape(-1, 3)
     dirs_w = np.asarray(dirs_w, np.float64).reshape(-1, 3)
     dirs_c = dirs_c[np.isfinite(dirs_c).all(-1)]
     if not len(dirs_c) or not len(dirs_w):
-        return np.zeros((0, 3)), np.zeros((0, 3))
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
     dirs_c = dirs_c / np.linalg.norm(dirs_c, axis=-1, keepdims=True)
     cos = np.abs(dirs_c @ (dirs_w @ R_cw.T).T)  # (C, W)
     best_w = np.argmax(cos, 1)
@@ -314,25 +323,55 @@ def match_directions(
     ok = (best_c[best_w] == np.arange(len(dirs_c))) & (
         cos[np.arange(len(dirs_c)), best_w] >= np.cos(np.radians(max_angle_deg))
     )
-    return dirs_w[best_w[ok]], dirs_c[ok]
+    return dirs_w[best_w[ok]], dirs_c[ok], best_w[ok]
+
+
+def _rotated_directions(R_wc: np.ndarray, dirs_c: np.ndarray) -> np.ndarray:
+    """(n, 3) unit world directions of the finite camera directions dirs_c (N, V, 3) under R_wc (N, 3, 3)."""
+    d = np.einsum("nij,nvj->nvi", np.asarray(R_wc, np.float64), np.asarray(dirs_c, np.float64)).reshape(-1, 3)
+    d = d[np.isfinite(d).all(-1)]
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+# median of a Rayleigh distribution (the angle of a 2D isotropic Gaussian deviation) / its sigma
+_RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
+
+
+def _spread_deg(d: np.ndarray, axis: np.ndarray) -> float:
+    """Robust per-direction sigma (deg) of the unit directions d (n, 3) around a sign-free axis."""
+    ang = np.degrees(np.arccos(np.clip(np.abs(d @ axis), 0.0, 1.0)))
+    return float(np.median(ang) / _RAYLEIGH_MEDIAN) if len(ang) else float("nan")
+
+
+def direction_spread_deg(
+    dirs_w: np.ndarray, R_wc: np.ndarray, dirs_c: np.ndarray, max_angle_deg: float = 3.0
+) -> np.ndarray:
+    """Robust sigma (A,) in degrees of the camera vanishing directions dirs_c (N, V, 3) of frames with
+    rotations R_wc (N, 3, 3) around each world direction dirs_w (A, 3), over those within
+    `max_angle_deg` (NaN for a direction no frame sees)."""
+    d = _rotated_directions(R_wc, dirs_c)
+    cos_thr = np.cos(np.radians(max_angle_deg))
+    out = np.full(len(dirs_w), np.nan)
+    for a, axis in enumerate(np.asarray(dirs_w, np.float64).reshape(-1, 3)):
+        out[a] = _spread_deg(d[np.abs(d @ axis) >= cos_thr], axis)
+    return out
 
 
 def world_directions(
     R_wc: np.ndarray, dirs_c: np.ndarray, max_angle_deg: float = 3.0, min_support: int = 3
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Principal world directions (A, 3) from camera vanishing directions dirs_c (N, V, 3) (NaN where
     absent) of N registered frames with rotations R_wc (N, 3, 3): greedy sign-free clusters of the
     rotated directions, each the dominant eigenvector of its members within `max_angle_deg`, largest
-    cluster first; clusters with fewer than `min_support` members are dropped."""
-    d = np.einsum("nij,nvj->nvi", np.asarray(R_wc, np.float64), np.asarray(dirs_c, np.float64)).reshape(-1, 3)
-    d = d[np.isfinite(d).all(-1)]
+    cluster first; clusters with fewer than `min_support` members are dropped. Also returns each
+    direction's robust spread (A,) in degrees (see `direction_spread_deg`)."""
+    d = _rotated_directions(R_wc, dirs_c)
     if not len(d):
-        return np.zeros((0, 3))
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        return np.zeros((0, 3)), np.zeros(0)
     cos_thr = np.cos(np.radians(max_angle_deg))
     near = np.abs(d @ d.T) >= cos_thr  # (n, n)
     alive = np.ones(len(d), bool)
-    out = []
+    out, spread = [], []
     while alive.any():
         support = (near & alive[None, :]).sum(1) * alive
         i = int(np.argmax(support))
@@ -348,8 +387,9 @@ def world_directions(
             alive[i] = False
             continue
         out.append(axis)
+        spread.append(_spread_deg(d[members], axis))
         alive &= ~members
-    return np.array(out).reshape(-1, 3)
+    return np.array(out).reshape(-1, 3), np.array(spread)
 
 
 class FrameRefiner:
@@ -366,6 +406,7 @@ class FrameRefiner:
         lines_w: np.ndarray | None = None,
         dirs_w: np.ndarray | None = None,
         config: PoseRefineConfig | None = None,
+        dirs_sigma_deg: np.ndarray | None = None,
     ) -> None:
         self.tracks = tracks
         self.K = tracks.camera.K
@@ -375,17 +416,33 @@ class FrameRefiner:
         self.line_ids = ids[order]
         self.lines_w = np.zeros((0, 6)) if lines_w is None else _as_plucker(lines_w)[order]
         self.dirs_w = np.zeros((0, 3)) if dirs_w is None else np.asarray(dirs_w, np.float64).reshape(-1, 3)
+        self.dirs_sigma_deg = (
+            np.full(len(self.dirs_w), np.nan) if dirs_sigma_deg is None else np.asarray(dirs_sigma_deg, float)
+        )
         rows = np.argsort(tracks.line_frame, kind="stable")
         self._line_rows = np.split(rows, np.searchsorted(tracks.line_frame[rows], np.arange(1, len(tracks))))
 
     @classmethod
     def from_map(cls, tracks: Tracks, m: Map, config: PoseRefineConfig | None = None) -> FrameRefiner:
-        """Lines (ids = line track ids) and axis directions of a finished map."""
+        """Lines (ids = line track ids) and axis directions of a finished map; each axis's sigma is the
+        spread of the keyframes' vanishing directions around it (keyframe ids are frame rows)."""
         cfg = config or PoseRefineConfig()
         dirs = m.axes.directions
         if cfg.vertical_only:
             dirs = dirs[[m.axes.vertical_index]] if m.axes.vertical_index >= 0 else np.zeros((0, 3))
-        return cls(tracks, m.lines.ids, m.lines.endpoints_w, dirs, cfg)
+        kf = np.asarray(m.keyframes.ids, np.int64)
+        inside = (kf >= 0) & (kf < len(tracks))
+        vp = (
+            np.stack([frame_directions(tracks, int(f), cfg.vertical_only) for f in kf[inside]])
+            if inside.any()
+            else None
+        )
+        spread = (
+            direction_spread_deg(dirs, m.keyframes.T_wc[inside, :3, :3], vp, cfg.match_direction_deg)
+            if vp is not None and vp.ndim == 3
+            else None
+        )
+        return cls(tracks, m.lines.ids, m.lines.endpoints_w, dirs, cfg, spread)
 
     def frame_lines(self, f: int) -> tuple[np.ndarray, np.ndarray]:
         """World Pluecker lines (M, 6) and observed segments (M, 4) of the map lines seen in frame f."""
@@ -404,12 +461,22 @@ class FrameRefiner:
         if not self.cfg.enabled:
             return T_cw, RefineStats(n_points=len(points_w))
         L_w, xy = self.frame_lines(f) if self.cfg.lines else (None, None)
-        d_w, d_c = None, None
+        d_w, d_c, sig = None, None, None
         if self.cfg.directions:
             vp_c = frame_directions(self.tracks, f, self.cfg.vertical_only)
-            d_w, d_c = match_directions(T_cw[:3, :3], self.dirs_w, vp_c, self.cfg.match_direction_deg)
+            d_w, d_c, idx = match_directions(T_cw[:3, :3], self.dirs_w, vp_c, self.cfg.match_direction_deg)
+            sig = self.dirs_sigma_deg[idx]
         return refine_pose(
-            T_cw, points_w, uv, self.K, lines_w=L_w, line_xy=xy, dirs_w=d_w, dirs_c=d_c, config=self.cfg
+            T_cw,
+            points_w,
+            uv,
+            self.K,
+            lines_w=L_w,
+            line_xy=xy,
+            dirs_w=d_w,
+            dirs_c=d_c,
+            dirs_sigma_deg=sig,
+            config=self.cfg,
         )
 
 
@@ -418,7 +485,7 @@ def frame_directions(tracks: Tracks, f: int, vertical_only: bool = False) -> np.
     if not vertical_only:
         return tracks.vp_dirs_c[f]
     v = int(tracks.vertical_vp[f]) if len(tracks.vertical_vp) else -1
-    return tracks.vp_dirs_c[f, [v]] if v >= 0 else np.zeros((0, 3))
+    return tracks.vp_dirs_c[f, [v]] if v >= 0 else np.full((1, 3), np.nan)
 
 
 def directions_from_poses(
@@ -428,13 +495,13 @@ def directions_from_poses(
     min_support: int = 3,
     max_frames: int = 150,
     vertical_only: bool = False,
-) -> np.ndarray:
-    """World directions (A, 3) of the vanishing points of the frames registered so far (frame -> T_cw),
-    for tracking while the map has no axes yet (see `world_directions`); at most `max_frames` frames
-    evenly spread over the registered ones are used, so the cost stays flat on long recordings."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """World directions (A, 3) and their spreads (A,) in degrees of the vanishing points of the frames
+    registered so far (frame -> T_cw), for tracking while the map has no axes yet (`world_directions`);
+    at most `max_frames` frames evenly spread over the registered ones are used (flat cost)."""
     frames = np.sort(np.fromiter(T_cw, np.int64, len(T_cw)))
     if not len(frames):
-        return np.zeros((0, 3))
+        return np.zeros((0, 3)), np.zeros(0)
     if len(frames) > max_frames:
         frames = frames[np.unique(np.linspace(0, len(frames) - 1, max_frames).round().astype(int))]
     R_wc = np.swapaxes(np.stack([T_cw[int(f)][:3, :3] for f in frames]), -1, -2)
@@ -456,10 +523,10 @@ class RegistrationDirections:
         self.max_angle_deg = max_angle_deg
         self.min_support = min_support
         self._key: tuple[int, int] = (-1, -1)
-        self._dirs = np.zeros((0, 3))
+        self._dirs = (np.zeros((0, 3)), np.zeros(0))
 
-    def __call__(self, T_cw: dict[int, np.ndarray]) -> np.ndarray:
-        """(A, 3) world directions of the keyframes in T_cw (frame -> world-to-camera pose)."""
+    def __call__(self, T_cw: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """World directions (A, 3) and spreads (A,) deg of the keyframes in T_cw (frame -> T_cw)."""
         key = (id(T_cw), len(T_cw))
         if key != self._key:
             self._dirs = directions_from_poses(

@@ -62,12 +62,14 @@ def track_pnp(
     line_xy: np.ndarray | None = None,
     dirs_w: np.ndarray | None = None,
     dirs_c: np.ndarray | None = None,
+    dirs_sigma_deg: np.ndarray | None = None,
 ) -> PnPResult:
     """Pose from 3D world points (N,3) seen at undistorted pixels (N,2); a guess seeds the search.
 
     Optional refinement terms: map lines seen in the frame (M,2,3) world endpoints or (M,6) Pluecker
     with their segments (M,4) px, and world directions (A,3) with the frame's vanishing directions
-    (V,3) (NaN rows skipped, matched sign-free within `config.refine.match_direction_deg`).
+    (V,3) (NaN rows skipped, matched sign-free within `config.refine.match_direction_deg`), optionally
+    with a sigma (A,) in degrees per world direction.
     """
     cfg = config or PnPConfig()
     points_w = np.asarray(points_w, np.float64).reshape(-1, 3)
@@ -103,11 +105,10 @@ def track_pnp(
     has_lines = rc.lines and lines_w is not None and line_xy is not None and len(lines_w) > 0
     has_dirs = rc.directions and dirs_w is not None and dirs_c is not None and len(dirs_w) > 0
     if rc.enabled and (has_lines or has_dirs):
-        d_w, d_c = (
-            match_directions(T_cw[:3, :3], dirs_w, dirs_c, rc.match_direction_deg)
-            if has_dirs
-            else (None, None)
-        )
+        d_w = d_c = sig = None
+        if has_dirs:
+            d_w, d_c, idx = match_directions(T_cw[:3, :3], dirs_w, dirs_c, rc.match_direction_deg)
+            sig = None if dirs_sigma_deg is None else np.asarray(dirs_sigma_deg, np.float64)[idx]
         T_cw, stats = refine_pose(
             T_cw,
             points_w[mask],
@@ -117,6 +118,7 @@ def track_pnp(
             line_xy=line_xy,
             dirs_w=d_w,
             dirs_c=d_c,
+            dirs_sigma_deg=sig,
             config=rc,
         )
     proj = (points_w @ T_cw[:3, :3].T + T_cw[:3, 3]) @ K.T
