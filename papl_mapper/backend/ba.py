@@ -15,7 +15,7 @@ import copy
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import gtsam
@@ -48,6 +48,7 @@ from papl_mapper.backend.problem import (
     uses_offset,
 )
 from papl_mapper.errors import GeometryError, OptimizationError
+from papl_mapper.geometry.lines import line_parallax_deg
 from papl_mapper.map import Map
 
 log = logging.getLogger(__name__)
@@ -295,20 +296,16 @@ def _rms(m: Map, pb: Problem, st: _State) -> dict[str, float]:
 # ---- run -----------------------------------------------------------------------------------------
 
 
-def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0: float) -> BAResult:
-    g = _build_graph(m, pb, config)
-    setup_s = time.perf_counter() - t0
-    init_state = _state(m, pb, g.values, g.batches, config)
-    initial_rms = _rms(m, pb, init_state)
-    optimizer = LevenbergMarquardt(g.graph, g.values, config.lambda_initial)
-    initial_cost = optimizer.error
-    if not np.isfinite(initial_cost):
-        raise OptimizationError("BA: the initial cost is not finite; check the map for degenerate geometry")
-    history = [initial_cost]
-    iteration_s: list[float] = []
-    iteration_cpu_s: list[float] = []
-    converged = False
-    cost = initial_cost
+def _lm_stage(
+    optimizer: LevenbergMarquardt,
+    config: BAConfig,
+    progress: ProgressFn | None,
+    history: list[float],
+    iteration_s: list[float],
+    iteration_cpu_s: list[float],
+) -> bool:
+    """Levenberg-Marquardt iterations until convergence or max_iterations; True if converged."""
+    cost = optimizer.error
     for it in range(config.max_iterations):
         ti, ci = time.perf_counter(), time.process_time()
         try:
@@ -328,11 +325,38 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
         if decrease <= config.absolute_error_tol or decrease <= config.relative_error_tol * max(
             history[-2], 1e-300
         ):
-            converged = True
-            break
+            return True
         if not accepted:
-            converged = True  # no decrease found even with heavy damping: a minimum to solver precision
-            break
+            return True  # no decrease found even with heavy damping: a minimum to solver precision
+    return False
+
+
+def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0: float) -> BAResult:
+    g = _build_graph(m, pb, config)
+    setup_s = time.perf_counter() - t0
+    init_state = _state(m, pb, g.values, g.batches, config)
+    initial_rms = _rms(m, pb, init_state)
+    initial_cost = float(g.graph.error(g.values))
+    if not np.isfinite(initial_cost):
+        raise OptimizationError("BA: the initial cost is not finite; check the map for degenerate geometry")
+    history = [initial_cost]
+    iteration_s: list[float] = []
+    iteration_cpu_s: list[float] = []
+    values = g.values
+    stats = {"linearize_s": 0.0, "solve_s": 0.0, "error_s": 0.0, "n_solve": 0}
+    if config.huber_k_start is not None:  # graduated robust loss: a wide Huber stage first
+        wide = _build_graph(m, pb, replace(config, huber_k=config.huber_k_start))
+        opt = LevenbergMarquardt(wide.graph, values, config.lambda_initial)
+        _lm_stage(opt, config, progress, [opt.error], iteration_s, iteration_cpu_s)
+        values = opt.values
+        for k in stats:
+            stats[k] += getattr(opt, k)
+        history.append(float(g.graph.error(values)))
+    optimizer = LevenbergMarquardt(g.graph, values, config.lambda_initial)
+    converged = _lm_stage(optimizer, config, progress, history, iteration_s, iteration_cpu_s)
+    for k in stats:
+        stats[k] += getattr(optimizer, k)
+    cost = optimizer.error
     time_s = time.perf_counter() - t0
     values = optimizer.values
     # linearisation vs solve split, measured once at the solution
@@ -347,7 +371,7 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
         solve_s = float("nan")
     st = _state(m, pb, values, g.batches, config)
     final_rms = _rms(m, pb, st)
-    out = _write_back(m, pb, st)
+    out = _write_back(m, pb, st, config)
     _check_finite(out, pb)
     n_lines = {k: len(v) for k, v in pb.lines.items()}
     n_axes_var = int(pb.axis_var.sum())
@@ -387,10 +411,10 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
         cost_history=history,
         iteration_s=iteration_s,
         iteration_cpu_s=iteration_cpu_s,
-        lm_linearize_s=optimizer.linearize_s,
-        lm_solve_s=optimizer.solve_s,
-        lm_error_s=optimizer.error_s,
-        n_solves=optimizer.n_solve,
+        lm_linearize_s=stats["linearize_s"],
+        lm_solve_s=stats["solve_s"],
+        lm_error_s=stats["error_s"],
+        n_solves=int(stats["n_solve"]),
     )
     out.metadata.setdefault("timings", {})["ba_s"] = time_s
     log.debug(
@@ -404,7 +428,8 @@ def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0:
     return result
 
 
-def _write_back(m: Map, pb: Problem, st: _State) -> Map:
+def _write_back(m: Map, pb: Problem, st: _State, config: BAConfig | None = None) -> Map:
+    config = config or BAConfig()
     out = copy.deepcopy(m)
     K = m.camera.K
     out.keyframes.T_wc[pb.kf_in] = st.T[pb.kf_in]
@@ -426,6 +451,24 @@ def _write_back(m: Map, pb: Problem, st: _State) -> Map:
             e0 = m.lines.endpoints_w[grp.rows[bad]]
             L[bad] = geo.normalize_plucker(geo.plucker_from_endpoints(e0[:, 0], e0[:, 1]))
         owner = np.repeat(np.arange(len(grp)), np.diff(grp.obs_start))
+        flat = np.zeros(len(grp), bool)
+        if config.min_line_parallax_deg > 0:
+            par = line_parallax_deg(L, owner, st.T[grp.obs_kf, :3, 3], len(grp))
+            flat = par < config.min_line_parallax_deg
+            flat &= ~bad
+            if flat.any():
+                log.info(
+                    "BA: %d %s lines span less than %.2f deg of parallax after BA (depth unobservable); "
+                    "kept as they were",
+                    int(flat.sum()),
+                    kind,
+                    config.min_line_parallax_deg,
+                )
+                pb.dropped["lines_low_parallax_after_ba"] = pb.dropped.get(
+                    "lines_low_parallax_after_ba", 0
+                ) + int(flat.sum())
+                e0 = m.lines.endpoints_w[grp.rows[flat]]
+                L[flat] = geo.normalize_plucker(geo.plucker_from_endpoints(e0[:, 0], e0[:, 1]))
         ends, ok = geo.clip_to_observations(L, owner, st.T[grp.obs_kf], K, grp.obs_xy, len(grp))
         if not ok.all():  # keep the old extent, projected onto the new line
             P0, d = geo.line_point_dir(L[~ok])
@@ -434,8 +477,15 @@ def _write_back(m: Map, pb: Problem, st: _State) -> Map:
             ends[~ok] = P0[:, None] + s[..., None] * d[:, None]
         out.lines.endpoints_w[grp.rows] = ends
         if kind != KIND_ORTHO:
+            inv = st.inv_depth[kind].copy()
+            kept = bad | flat  # their stored inverse depth must describe the kept line
+            if kept.any():
+                r, _ = geo.ray_inverse_depth(grp.obs_bearing[kept], st.T[grp.ref_kf[kept]], L[kept])
+                old_r = m.lines.inverse_depth[grp.rows[kept]]
+                fallback = np.where(np.isfinite(old_r), old_r, inv[kept])
+                inv[kept] = np.where(np.isfinite(r) & (r > 0), r, fallback)
             out.lines.ref_keyframe_id[grp.rows] = m.keyframes.ids[grp.ref_kf]
-            out.lines.inverse_depth[grp.rows] = st.inv_depth[kind]
+            out.lines.inverse_depth[grp.rows] = inv
     return out
 
 

@@ -24,6 +24,16 @@ class BAConfig:
     """Standard deviation of the endpoint-to-line distances, pixels."""
     huber_k: float = 1.345
     """Huber threshold in standard deviations (applied per observation, to its whitened 2-vector)."""
+    huber_k_start: float | None = None
+    """Graduated robust loss: if set, Levenberg-Marquardt first converges with this wider Huber threshold and
+    then continues with `huber_k` (each stage up to max_iterations). From starts with residuals of tens of
+    pixels a tight Huber weights every observation down alike, and anchored lines settled in false minima
+    (Open-Structure livingroom2: anchored line RMS 9.0 px with huber_k only, 1.3 px with 20 then 1.345,
+    see benchmarks/line_representations.py). None: one stage."""
+    min_line_parallax_deg: float = 0.0
+    """After BA, a line whose observing camera centres span less than this angle about it (its depth is
+    unobservable, e.g. driven hundreds of scene sizes away along a pose-degenerate direction) keeps its input
+    geometry, counted in BAResult.dropped. Applies to every line representation alike; 0 turns it off."""
     axis_prior_sigma_deg: float = 2.0
     """The paper's axis error e_a: how far (1 sigma) an axis may move from its value before BA."""
     min_axis_weight: float = 0.1

@@ -435,6 +435,33 @@ def clip_to_observations(
     return ends, ok
 
 
+def line_parallax_deg(
+    L_w: np.ndarray, line_index: np.ndarray, centres: np.ndarray, n_lines: int
+) -> np.ndarray:
+    """Angle (degrees, (M,)) that the observing camera centres span about each line: the largest angle
+    between two back-projection planes (camera centre + line). Near 0 the views all see the line in one
+    plane and its depth is unobservable. L_w (M, 6); line_index (K,) rows of L_w; centres (K, 3)."""
+    P0, d = line_point_dir(L_w)
+    u = centres - P0[line_index]
+    dl = d[line_index]
+    u = u - np.sum(u * dl, -1, keepdims=True) * dl
+    B = tangent_basis(d)[line_index]  # (K, 3, 2)
+    xy = np.einsum("kj,kja->ka", u, B)
+    ang = np.arctan2(xy[:, 1], xy[:, 0])
+    first = np.full(n_lines, np.nan)
+    order = np.argsort(line_index, kind="stable")
+    idx = line_index[order]
+    head = np.ones(len(idx), bool)
+    head[1:] = idx[1:] != idx[:-1]
+    first[idx[head]] = ang[order][head]
+    rel = np.angle(np.exp(1j * (ang - first[line_index])))  # relative to the line's first view, (-pi, pi]
+    lo = np.full(n_lines, np.inf)
+    hi = np.full(n_lines, -np.inf)
+    np.minimum.at(lo, line_index, rel)
+    np.maximum.at(hi, line_index, rel)
+    return np.where(np.isfinite(lo), np.degrees(hi - lo), 0.0)
+
+
 # ---- comparing lines -----------------------------------------------------------------------
 
 
