@@ -470,6 +470,8 @@ def _write_back(m: Map, pb: Problem, st: _State, config: BAConfig | None = None)
                 e0 = m.lines.endpoints_w[grp.rows[flat]]
                 L[flat] = geo.normalize_plucker(geo.plucker_from_endpoints(e0[:, 0], e0[:, 1]))
         ends, ok = geo.clip_to_observations(L, owner, st.T[grp.obs_kf], K, grp.obs_xy, len(grp))
+        # a single usable endpoint ray gives a zero-length segment, which has no direction: old extent too
+        ok &= np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) > 1e-9 * scale
         if not ok.all():  # keep the old extent, projected onto the new line
             P0, d = geo.line_point_dir(L[~ok])
             old = m.lines.endpoints_w[grp.rows[~ok]]
