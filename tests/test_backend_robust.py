@@ -34,7 +34,16 @@ def _line_x() -> np.ndarray:
     return geo.plucker_from_point_dir(np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]))
 
 
-@pytest.mark.parametrize("angles, span", [((0.0, 10.0, 25.0), 25.0), ((170.0, -170.0), 20.0), ((40.0,), 0.0)])
+@pytest.mark.parametrize(
+    "angles, span",
+    [
+        ((0.0, 10.0, 25.0), 25.0),
+        ((170.0, -170.0), 20.0),
+        ((40.0,), 0.0),
+        ((0.0, 180.0), 0.0),  # opposite sides of the line: one plane, depth unobservable
+        ((0.0, 100.0), 80.0),  # planes 100 deg apart meet at 80 deg
+    ],
+)
 def test_line_parallax_is_the_angle_the_centres_span_about_the_line(angles, span):
     a = np.radians(angles)
     # centres anywhere along the line (x varies): only the angle about the line counts

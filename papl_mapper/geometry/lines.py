@@ -438,9 +438,10 @@ def clip_to_observations(
 def line_parallax_deg(
     L_w: np.ndarray, line_index: np.ndarray, centres: np.ndarray, n_lines: int
 ) -> np.ndarray:
-    """Angle (degrees, (M,)) that the observing camera centres span about each line: the largest angle
-    between two back-projection planes (camera centre + line). Near 0 the views all see the line in one
-    plane and its depth is unobservable. L_w (M, 6); line_index (K,) rows of L_w; centres (K, 3)."""
+    """Angle (degrees, (M,), 0..90) that the observing camera centres span about each line: the largest
+    angle between back-projection planes (camera centre + line), from where the centres lie, not from noisy
+    image lines. Near 0 every view sees the line in one plane (e.g. a camera walking along it) and its depth
+    is unobservable. L_w (M, 6); line_index (K,) rows of L_w; centres (K, 3)."""
     P0, d = line_point_dir(L_w)
     u = centres - P0[line_index]
     dl = d[line_index]
@@ -454,12 +455,14 @@ def line_parallax_deg(
     head = np.ones(len(idx), bool)
     head[1:] = idx[1:] != idx[:-1]
     first[idx[head]] = ang[order][head]
-    rel = np.angle(np.exp(1j * (ang - first[line_index])))  # relative to the line's first view, (-pi, pi]
+    # planes, not rays: centres on opposite sides of the line (angles pi apart) give one plane
+    rel = np.angle(np.exp(2j * (ang - first[line_index]))) / 2  # relative to the first view, (-pi/2, pi/2]
     lo = np.full(n_lines, np.inf)
     hi = np.full(n_lines, -np.inf)
     np.minimum.at(lo, line_index, rel)
     np.maximum.at(hi, line_index, rel)
-    return np.where(np.isfinite(lo), np.degrees(hi - lo), 0.0)
+    span = np.where(np.isfinite(lo), np.degrees(hi - lo), 0.0)
+    return np.minimum(span, 180.0 - span)
 
 
 # ---- comparing lines -----------------------------------------------------------------------
