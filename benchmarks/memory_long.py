@@ -3,8 +3,7 @@ redundant keyframe culling (issue #5: a 5-minute 720p recording under 4 GB).
 
 Each (length, variant) runs `papl_mapper.pipelines.run.run` in a fresh child process, so its peak
 resident set size (getrusage ru_maxrss) is that job's alone; the child also records the peak so far
-after every stage. The `cull` variant wraps the pipeline's `register_keyframes` with
-`papl_mapper.mapping.culling.cull_keyframes` (the integration proposed to the pipeline). With
+after every stage. The `cull` variants turn on redundant keyframe culling (`cull.enabled`). With
 `--reuse-frontend` a later variant of the same length resumes from the first one's frontend
 checkpoint, so its peak leaves out the frontend (the table says so). Make the recording first, e.g.
 
@@ -30,12 +29,11 @@ from machine import machine_info  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "memory_long.json"
 CULL_VARIANTS = {
-    "cull": {},
-    "cull_lines1": {"min_line_views": 1},
-    "cull_shared200": {"min_shared_points": 200},
-    "cull_views5": {"min_other_views": 5},
+    "cull": [],
+    "cull_lines1": ["cull.min_line_views=1"],
+    "cull_views5": ["cull.min_other_views=5"],
 }
-"""Variant name -> CullConfig overrides; "base" runs without culling."""
+"""Variant name -> RunConfig overrides with culling on; "base" runs the defaults."""
 
 
 def _rss_mib() -> tuple[float, float]:
@@ -56,8 +54,8 @@ def child(args: argparse.Namespace) -> None:
     import papl_mapper.pipelines.run as pipeline
     from papl_mapper.pipelines.config import RunConfig
 
+    from papl_mapper.config import load_config
     from papl_mapper.eval import evaluate
-    from papl_mapper.mapping.culling import CullConfig, CullStats, cull_keyframes
 
     memory: dict[str, dict[str, float]] = {}
     stage = pipeline._Timer.stage
@@ -70,21 +68,13 @@ def child(args: argparse.Namespace) -> None:
         memory[name] = {"rss_after_MiB": round(cur, 1), "peak_so_far_MiB": round(peak, 1)}
 
     pipeline._Timer.stage = stage_with_memory
-    cull_stats = CullStats()
-    if args.variant in CULL_VARIANTS:
-        register = pipeline.register_keyframes
-
-        def register_and_cull(tracks, *a, **kw):  # noqa: ANN001, ANN002, ANN003, ANN202
-            cfg = CullConfig(**CULL_VARIANTS[args.variant])
-            return cull_keyframes(tracks, register(tracks, *a, **kw), cfg, cull_stats)
-
-        pipeline.register_keyframes = register_and_cull
+    overrides = ["cull.enabled=true", *CULL_VARIANTS[args.variant]] if args.variant in CULL_VARIANTS else []
     rec = Path(args.recording)
     t0 = time.perf_counter()
     res = pipeline.run(
         rec / "video.mp4",
         args.out,
-        RunConfig(),
+        load_config(RunConfig, None, overrides),
         camera_file=rec / "camera.json",
         end_s=args.end,
         resume=args.resume,
@@ -105,7 +95,7 @@ def child(args: argparse.Namespace) -> None:
         "keyframes": int(s["counts"]["keyframes"]),
         "frontend_keyframes": int(s.get("frontend", {}).get("keyframes", -1)),
         "keyframes_registered": int(s.get("keyframes_registered", -1)),
-        "culling": cull_stats.as_dict() if args.variant in CULL_VARIANTS else None,
+        "culling": s.get("culling") if args.variant in CULL_VARIANTS else None,
         "points": int(s["counts"]["points"]),
         "lines": int(s["counts"]["lines"]),
         "frames_lost": int(s["frames_lost"]),
@@ -172,7 +162,9 @@ def main() -> None:
             if args.reuse_frontend and first_out is not None:
                 source = first_out
             if source is not None:
-                shutil.copytree(source / ".checkpoint", out / ".checkpoint")
+                # only the frontend's tracks: later stages depend on the variant
+                stages = shutil.ignore_patterns("registration-*", "ba_points-*", "ba_full-*", "log.txt")
+                shutil.copytree(source / ".checkpoint", out / ".checkpoint", ignore=stages)
                 resume = True
             cmd = [sys.executable, __file__, "--child", "--recording", str(rec), "--variant", variant]
             cmd += ["--end", str(end), "--out", str(out)] + (["--resume"] if resume else [])

@@ -69,13 +69,25 @@ class Tracks:
 
     def points_in(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """Track ids (K,) and pixels (K, 2) of the points seen in one frame."""
-        sel = self.point_frame == frame
+        sel = self._rows(self.point_frame, frame)
         return self.point_track[sel], self.point_uv[sel]
 
     def lines_in(self, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Track ids (K,), endpoints (K, 4) and VP labels (K,) of the segments seen in one frame."""
-        sel = self.line_frame == frame
+        sel = self._rows(self.line_frame, frame)
         return self.line_track[sel], self.line_xy[sel], self.line_vp[sel]
+
+    def _rows(self, frames: np.ndarray, frame: int) -> slice | np.ndarray:
+        """The observation rows of one frame: a slice when the rows are in frame order (as the frontend
+        writes them; a binary search instead of a scan of every observation), else a mask."""
+        cache = self.__dict__.setdefault("_frame_order", {})
+        key = id(frames)
+        if key not in cache or cache[key][0] is not frames:
+            in_order = bool(np.all(frames[1:] >= frames[:-1]))
+            cache[key] = (frames, in_order)
+        if cache[key][1]:
+            return slice(*np.searchsorted(frames, [frame, frame + 1]).tolist())
+        return frames == frame
 
     def save(self, path: str | Path) -> Path:
         """Write to one .npz (camera as JSON) under a temporary name, then rename."""
@@ -97,3 +109,23 @@ class Tracks:
         tracks = cls(camera=camera, **kw)
         tracks.validate()
         return tracks
+
+
+class PointRows:
+    """Point observation rows grouped by track id: a few tracks' observations without scanning all.
+
+    Built from `tracks.point_track` as it is now; build it again after track ids change (loop
+    closure renames tracks in place).
+    """
+
+    def __init__(self, tracks: Tracks):
+        self._order = np.argsort(tracks.point_track, kind="stable")
+        self._sorted = tracks.point_track[self._order]
+
+    def rows(self, ids: np.ndarray) -> np.ndarray:
+        """Rows (ascending) of every observation of the track ids `ids` (unique)."""
+        ids = np.asarray(ids, np.int64)
+        lo = np.searchsorted(self._sorted, ids, "left")
+        n = np.searchsorted(self._sorted, ids, "right") - lo
+        starts = np.repeat(lo - (np.cumsum(n) - n), n)
+        return np.sort(self._order[starts + np.arange(int(n.sum()))])

@@ -35,8 +35,12 @@ def assemble_map(
     axes: Axes | None = None,
     line_weights: np.ndarray | None = None,
     metadata: dict | None = None,
+    point_rows: np.ndarray | None = None,
 ) -> Map:
     """A Map of the registered keyframes, with the observations of points and lines in them.
+
+    `point_rows` (ascending), when given, are the only point observation rows to consider, so a
+    small map of a large recording is made without scanning every observation.
 
     `line_weights` (M,A) are the soft axis associations of `lines` to `axes`; lines with no
     weight stay orthonormal, the others are anchored in their first observing keyframe.
@@ -50,7 +54,12 @@ def assemble_map(
     )
     pids = np.array(sorted(points_w), np.int64)
     xyz = np.stack([points_w[int(p)] for p in pids]) if len(pids) else np.zeros((0, 3))
-    sel = np.isin(tracks.point_track, pids) & np.isin(tracks.point_frame, frames)
+    if point_rows is None:
+        sel = np.isin(tracks.point_track, pids) & np.isin(tracks.point_frame, frames)
+    else:
+        sel = point_rows[
+            np.isin(tracks.point_track[point_rows], pids) & np.isin(tracks.point_frame[point_rows], frames)
+        ]
     pts = Points(
         pids,
         xyz,

@@ -21,7 +21,7 @@ from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.revisit import Revisit, RevisitConfig, TrackIndex, close_loop, find_revisit
 from papl_mapper.mapping.tracking import PnPConfig, PnPResult, track_pnp
-from papl_mapper.tracks import Tracks
+from papl_mapper.tracks import PointRows, Tracks
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ class IncrementalConfig:
     keyframe_min_inliers: int = 60
     """A frame with fewer PnP inliers becomes a keyframe (the map needs new points)."""
     keyframe_min_known: float = 0.5
-    """A frame whose inliers are fewer than this fraction of its point tracks becomes a keyframe..."""
+    """A frame whose mapped points are fewer than this fraction of its point tracks becomes a keyframe."""
     keyframe_min_gap: int = 1
     """...if at least this many frames have passed since the last keyframe."""
     refine_every: int = 10
@@ -101,7 +101,9 @@ def _common(tracks: Tracks, f1: int, f2: int) -> tuple[np.ndarray, np.ndarray, n
     return common, uv1[i1], uv2[i2]
 
 
-def _triangulate_new(tracks: Tracks, reg: Registration, frame: int, cfg: IncrementalConfig) -> int:
+def _triangulate_new(
+    tracks: Tracks, rows: PointRows, reg: Registration, frame: int, cfg: IncrementalConfig
+) -> int:
     """Triangulate the point tracks seen in `frame` from all their registered keyframes (vectorised).
 
     New tracks enter the map once their rays span `min_parallax_deg`; mapped ones are
@@ -117,7 +119,8 @@ def _triangulate_new(tracks: Tracks, reg: Registration, frame: int, cfg: Increme
     )
     if len(ids) == 0:
         return 0
-    sel = np.isin(tracks.point_track, ids) & np.isin(tracks.point_frame, np.array(reg.frames))
+    sel = rows.rows(ids)
+    sel = sel[np.isin(tracks.point_frame[sel], reg.frames)]
     obs_track, obs_frame, uv = tracks.point_track[sel], tracks.point_frame[sel], tracks.point_uv[sel]
     uniq, point_index = np.unique(obs_track, return_inverse=True)
     T_cw = np.stack([reg.T_cw[int(f)] for f in obs_frame])
@@ -233,10 +236,13 @@ def _extend(
     last_T = reg.T_cw[f1]
     since_refine = 0
     misses = 0
+    last_keyframe = f1
+    rows = PointRows(tracks)
     f = f1
     for f in range(f1 + 1, len(tracks)):
         if f == f2:
             last_T = reg.T_cw[f2]
+            last_keyframe = f2
             continue
         res, n_tracks = _pnp(tracks, reg, f, last_T, cfg)
         if res is None or not res.ok:
@@ -249,19 +255,23 @@ def _extend(
             continue
         misses = 0
         last_T = res.T_cw
-        n_inliers = int(res.inliers.sum())
-        gap = f - max(k for k in reg.frames if k < f)
-        stale = n_inliers < cfg.keyframe_min_known * n_tracks and gap >= cfg.keyframe_min_gap
-        weak = n_inliers < cfg.keyframe_min_inliers or stale
-        if tracks.is_keyframe[f] or weak:
+        weak = int(res.inliers.sum()) < cfg.keyframe_min_inliers
+        # mapped points, not inliers: a frame whose points are mapped but loosely (early, low-parallax
+        # depths) is refined by BA; a keyframe is for tracks the map does not hold yet
+        unmapped = (
+            len(res.inliers) < cfg.keyframe_min_known * n_tracks and f - last_keyframe >= cfg.keyframe_min_gap
+        )
+        if tracks.is_keyframe[f] or weak or unmapped:
             reg.T_cw[f] = res.T_cw
             reg.frames.append(f)
-            added = _triangulate_new(tracks, reg, f, cfg)
+            last_keyframe = f
+            added = _triangulate_new(tracks, rows, reg, f, cfg)
             log.debug("keyframe %d: %s, %d new points", f, res.reason, added)
             if index is not None and tracks.is_keyframe[f]:
                 rv = find_revisit(tracks, reg.points_w, reg.T_cw, f, index, cfg.revisit)
                 if rv is not None and close_loop(tracks, reg.points_w, reg.T_cw, reg.T_cw_frames, rv, index):
                     reg.revisits.append(rv)
+                    rows = PointRows(tracks)  # the loop renamed tracks
                     last_T = reg.T_cw[f]
             since_refine += 1
             if refine is not None and cfg.refine_every > 0 and since_refine >= cfg.refine_every:
