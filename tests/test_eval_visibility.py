@@ -216,3 +216,16 @@ def test_report_shows_recall_of_the_seen_ground_truth_beside_recall(tmp_path):
     assert i_recall < i_seen < i_prec
     assert "0.5" in text[i_seen:i_prec]  # the hand value, (2 + 2) / 8
     assert "share of the GT line length seen in &gt;= 5 frames" in text
+
+
+def test_only_the_frames_of_the_evaluated_time_span_count(tmp_path):
+    """An estimate of the first 8 frames only: the turned frames are outside its span, so the fifth
+    segment is not seen even when 2 frames suffice (seen length 8 instead of 10)."""
+    T = poses()
+    folder = write_recording(tmp_path / "rec", SEGMENTS[:5], T)
+    tum = tmp_path / "est.tum"
+    write_tum(tum, Trajectory(np.arange(N_FORWARD) / 30.0, T[:N_FORWARD], "est"))
+    res = evaluate(folder, line_map(T, SEGMENTS[:1]), tum, EvalConfig(line_visible_min_frames=2))
+    assert res.n_matched_poses == N_FORWARD
+    assert res.gt_visible_length == pytest.approx(8.0, abs=2 * LENGTH_TOL)
+    assert f"of {N_FORWARD} GT frames" in res.line_visibility
