@@ -229,3 +229,22 @@ def test_only_the_frames_of_the_evaluated_time_span_count(tmp_path):
     assert res.n_matched_poses == N_FORWARD
     assert res.gt_visible_length == pytest.approx(8.0, abs=2 * LENGTH_TOL)
     assert f"of {N_FORWARD} GT frames" in res.line_visibility
+
+
+def test_recall_of_the_seen_ground_truth_with_offset_lines(tmp_path):
+    """Map lines parallel to the seen GT at known distances: the first 0.05 off (within every tau), the
+    second 0.2 off (within tau at 1% and 2% only: taus 0.129, 0.259, 0.518 here), the seen half of the
+    fourth 1.0 off (within none). Seen length 8: recall_visible 2/8, 6/8, 6/8."""
+    T = poses()
+    folder = write_recording(tmp_path / "rec", SEGMENTS[:5], T)
+    up = np.array([0.0, 1.0, 0.0])
+    est = np.array([SEGMENTS[0] + 0.05 * up, SEGMENTS[1] + 0.2 * up, [[2, -1, 4], [4, -1, 4]]])
+    tum = tmp_path / "est.tum"
+    write_tum(tum, Trajectory(np.arange(len(T)) / 30.0, T, "est"))
+    res = evaluate(folder, line_map(T, est), tum)
+    taus = np.array(list(res.line_thresholds.values()))
+    assert (taus[0] < 0.2 < taus[1]) and taus[2] < 1.0
+    spacing = EvalConfig().sample_spacing_rel * taus.min()
+    want = dict(zip(res.line_thresholds, (2 / 8, 6 / 8, 6 / 8), strict=True))
+    for key, value in want.items():
+        assert res.line_recall_visible[key] == pytest.approx(value, abs=2 * spacing / 8)
