@@ -147,18 +147,21 @@ def main() -> None:
     ap.add_argument("--a-vertical", action="store_true", help="also try (a) with the vertical direction only")
     ap.add_argument("--b", default=",".join(B_VARIANTS), help="b variants on the baseline map")
     ap.add_argument("--set", nargs="*", default=[], help="config overrides key=value")
+    ap.add_argument("--seeds", default="0", help="PnP RANSAC seeds (mapping.pnp.seed): run-to-run spread")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    cfg = load_config(RunConfig, None, args.set)
     tmp = Path("/tmp/pose_refine_bench.tum")
     rows = []
-    for name in args.scenes.split(","):
+    jobs = [(n, int(sd)) for sd in args.seeds.split(",") for n in args.scenes.split(",")]
+    for name, seed in jobs:
         folder, tpath = SCENES[name]
         if not tpath.exists():
             print(f"{name}: {tpath} missing, skipped")
             continue
         tracks = Tracks.load(tpath)
+        base_set = [*args.set, f"mapping.pnp.seed={seed}"]
+        cfg = load_config(RunConfig, None, base_set)
         regs: list[tuple[str, bool | None, float]] = [("a:none", None, 0.0)]
         if not args.no_a:
             for sig in (float(x) for x in args.a_sigmas.split(",")):
@@ -173,18 +176,24 @@ def main() -> None:
                 else None
             )
             a_cfg = load_config(
-                RunConfig, None, [*args.set, f"mapping.pnp.refine.direction_sigma_deg={sigma}"]
+                RunConfig, None, [*base_set, f"mapping.pnp.refine.direction_sigma_deg={sigma}"]
             )
             t0 = time.perf_counter()
             with ctx or contextlib.nullcontext():
                 m, _ = run_mod.map_tracks(tracks, a_cfg if vertical is not None else cfg)
             t_map = time.perf_counter() - t0
-            b_names = args.b.split(",") if vertical is None else ["none", "all"]
+            b_names = args.b.split(",") if vertical is None and seed == 0 else ["none"]
             b_list = {k: B_VARIANTS[k] for k in b_names}
             for b_name, rc in b_list.items():
                 t_b: list[float] = []
                 poses = frame_poses_refined(tracks, m, cfg, rc, t_b)
-                row = {"scene": name, "a": a_name, "b": b_name, **_ate(folder, tracks, m, poses, tmp)}
+                row = {
+                    "scene": name,
+                    "seed": seed,
+                    "a": a_name,
+                    "b": b_name,
+                    **_ate(folder, tracks, m, poses, tmp),
+                }
                 row["map_s"] = round(t_map, 1)
                 row["b_refine_ms_per_frame"] = 1e3 * float(np.mean(t_b)) if t_b else None
                 row["a_pnp_ms_per_frame"] = 1e3 * float(np.mean(t_a)) if t_a else None
@@ -192,7 +201,7 @@ def main() -> None:
                 b_ms = f"{row['b_refine_ms_per_frame']:.2f}" if t_b else "-"
                 a_ms = f"{row['a_pnp_ms_per_frame']:.2f}" if t_a else "-"
                 print(
-                    f"{name:10s} {a_name:7s} b:{b_name:7s} ATE {row['ate_pct_path']:.3f}% "
+                    f"{name:10s} s{seed} {a_name:9s} b:{b_name:7s} ATE {row['ate_pct_path']:.3f}% "
                     f"rpe_rot {row['rpe_rot_deg']:.3f} deg posed {row['posed']}/{row['frames']} "
                     f"refine {b_ms} ms/frame, a-PnP {a_ms} ms/frame, map {t_map:.1f} s",
                     flush=True,

@@ -290,7 +290,7 @@ def test_scattered_direction_gets_its_own_sigma() -> None:
     T_true, X_w, uv, _, _ = _scene(n_pts=30, n_lines=0, seed=10)
     d_c = _dirs_c(T_true)
     d_c[0] = so3_exp(np.radians([0.0, 2.0, 0.0])) @ d_c[0]  # one direction 2 deg off
-    cfg = PoseRefineConfig(iterations=30)
+    cfg = PoseRefineConfig(iterations=30, max_direction_spread_deg=5.0)
     T_fixed, _ = refine_pose(T_true, X_w, uv, K, dirs_w=AXES_W, dirs_c=d_c, config=cfg)
     T_own, _ = refine_pose(
         T_true, X_w, uv, K, dirs_w=AXES_W, dirs_c=d_c, dirs_sigma_deg=np.array([3.0, np.nan, 0.1]), config=cfg
@@ -298,3 +298,7 @@ def test_scattered_direction_gets_its_own_sigma() -> None:
     err_fixed = rotation_angle_deg(T_fixed[:3, :3], T_true[:3, :3])
     err_own = rotation_angle_deg(T_own[:3, :3], T_true[:3, :3])
     assert err_own < 0.5 * err_fixed
+    cfg.max_direction_spread_deg = 2.0  # the 3 deg direction is left out altogether
+    sig = np.array([3.0, 0.2, 0.1])
+    _, st = refine_pose(T_true, X_w, uv, K, dirs_w=AXES_W, dirs_c=d_c, dirs_sigma_deg=sig, config=cfg)
+    assert st.n_directions == 2
