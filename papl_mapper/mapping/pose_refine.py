@@ -12,6 +12,20 @@ and the structural rotation constraint). Cost, with robust Huber weights on each
 Levenberg-Marquardt on the 6-dof pose with a LEFT perturbation of the world-to-camera pose:
 T_cw' = Exp(xi) @ T_cw, xi = (omega, nu), Exp as in geometry.se3 (rotation first). Left on T_cw is
 the camera-frame perturbation, so every Jacobian is a function of camera-frame quantities only.
+
+World directions: after the run, the map's axes (`FrameRefiner.from_map`); during registration,
+when there are no axes yet, greedy sign-free clusters of R_wc v_c over the registered keyframes
+(`RegistrationDirections`). Each direction weighs by the robust spread of its vanishing points
+(sigma >= `direction_sigma_deg`; left out above `max_direction_spread_deg`).
+
+Call sites (`track_pnp` takes the extra terms as keywords; without them it is unchanged):
+(a) registration, `incremental._pnp`: `dirs_w, sigma = reg_dirs(reg.T_cw)` with one
+    `reg_dirs = RegistrationDirections(tracks)` per run, then `track_pnp(..., dirs_w=dirs_w,
+    dirs_c=frame_directions(tracks, f), dirs_sigma_deg=sigma)`;
+(b) all-frames trajectory, `pipelines.run.frame_poses`: `refiner = FrameRefiner.from_map(tracks, m,
+    cfg.mapping.pnp.refine)` before the loop, then after a successful PnP
+    `T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])`.
+benchmarks/pose_refine.py monkeypatches both exactly so.
 """
 
 from __future__ import annotations
@@ -204,8 +218,10 @@ class _Problem:
             e = np.linalg.norm(r, axis=-1) / s
             cost += _huber_cost(e, k)
             w = _huber_weights(e, k) / s**2  # (n,)
-            H += np.einsum("n,nki,nkj->ij", w, J, J)
-            g += np.einsum("n,nki,nk->i", w, J, r)
+            Jf = J.reshape(-1, 6)  # (n k, 6)
+            Wj = (J * w[:, None, None]).reshape(-1, 6)
+            H += Wj.T @ Jf
+            g += Wj.T @ r.reshape(-1)
         return H, g, cost
 
 
