@@ -7,7 +7,7 @@ import pytest
 
 from papl_mapper.geometry.lines import plucker_from_endpoints
 from papl_mapper.geometry.se3 import make_T, retract, rotation_angle_deg, so3_exp
-from papl_mapper.map import Axes, Camera, Lines, LineState, Map
+from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map
 from papl_mapper.mapping.pose_refine import (
     FrameRefiner,
     PoseRefineConfig,
@@ -302,3 +302,17 @@ def test_scattered_direction_gets_its_own_sigma() -> None:
     sig = np.array([3.0, 0.2, 0.1])
     _, st = refine_pose(T_true, X_w, uv, K, dirs_w=AXES_W, dirs_c=d_c, dirs_sigma_deg=sig, config=cfg)
     assert st.n_directions == 2
+
+
+def test_frame_refiner_takes_axis_spread_from_keyframes() -> None:
+    T_true, X_w, uv, _, seg = _scene(seed=11)
+    tracks = _tracks_one_frame(T_true, uv, seg)
+    tracks.vp_dirs_c[0, 1] = so3_exp(np.radians([1.5, 0.0, 0.0])) @ tracks.vp_dirs_c[0, 1]  # 1.5 deg off
+    m = Map(tracks.camera)
+    m.keyframes = Keyframes(np.array([0]), np.array([0]), np.array([0.0]), np.linalg.inv(T_true)[None])
+    m.axes = Axes(AXES_W.copy(), 2)
+    ref = FrameRefiner.from_map(tracks, m)
+    assert ref.dirs_sigma_deg[0] < 1e-5 and ref.dirs_sigma_deg[2] < 1e-5
+    assert ref.dirs_sigma_deg[1] > 1.0  # one observation 1.5 deg off: sigma 1.5 / 1.18
+    _, st = ref.refine(0, T_true, X_w, uv)
+    assert st.n_directions == 2  # the scattered one exceeds max_direction_spread_deg
