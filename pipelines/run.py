@@ -53,7 +53,7 @@ from papl_mapper.mapping.incremental import Registration, register_keyframes
 from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
 from papl_mapper.mapping.structure import find_structure, line_weights
 from papl_mapper.mapping.tracking import track_pnp
-from papl_mapper.mapping.windowed import windowed_refiner
+from papl_mapper.mapping.windowed import WindowedRefiner
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -247,7 +247,7 @@ def map_tracks(
     loaded = store.load("registration", functools.partial(ckpt.read_registration, tracks=tracks))
     if loaded is None:
         with timer.stage("registration"), progress("keyframes") as cb:
-            refine = windowed_refiner(tracks, cfg.ba, cfg.local_ba_window, cfg.max_point_error_px)
+            refine = WindowedRefiner(tracks, cfg.ba, cfg.local_ba_window, cfg.max_point_error_px)
             reg = register_keyframes(tracks, cfg.mapping, cb, refine if cfg.local_ba_every > 0 else None)
         _save(store, timer, "registration", ckpt.write_registration, reg=reg, tracks=tracks)
     else:

@@ -9,7 +9,7 @@ from papl_mapper.backend import BAConfig, local_ba
 from papl_mapper.mapping.assemble import assemble_map, cull_observations
 from papl_mapper.mapping.incremental import IncrementalConfig, register_keyframes
 from papl_mapper.mapping.lines import LineEstimates
-from papl_mapper.mapping.windowed import windowed_refiner
+from papl_mapper.mapping.windowed import WindowedRefiner
 from papl_mapper.tracks import PointRows
 from tests.test_mapping_incremental import make_tracks
 
@@ -39,7 +39,7 @@ def test_points_in_matches_a_scan_in_and_out_of_frame_order():
     assert np.array_equal(ids, tracks.point_track[tracks.point_frame == 5])
 
 
-def test_windowed_refiner_equals_local_ba_on_the_whole_map():
+def test_WindowedRefiner_equals_local_ba_on_the_whole_map():
     tracks, _, _ = make_tracks(n_frames=40, noise_px=0.7, seed=3)
     reg = register_keyframes(tracks, IncrementalConfig())
     ba, window = BAConfig(), 8
@@ -49,7 +49,7 @@ def test_windowed_refiner_equals_local_ba_on_the_whole_map():
     cull_observations(m, 4.0, 4.0, ba.min_views)
     frames = sorted(reg.frames)
     ref = local_ba(m, np.array(frames[len(frames) - window :]), ba).map
-    windowed_refiner(tracks, ba, window, 4.0)(reg)
+    WindowedRefiner(tracks, ba, window, 4.0)(reg)
     moved = 0
     for k, T in zip(ref.keyframes.ids, ref.keyframes.T_wc, strict=True):
         assert np.abs(np.linalg.inv(reg.T_cw[int(k)]) - T).max() < EXACT

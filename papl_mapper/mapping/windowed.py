@@ -7,7 +7,6 @@ the window hold still, so the gauge and scale stay where the map put them.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 
 import numpy as np
 
@@ -21,34 +20,36 @@ from papl_mapper.tracks import PointRows, Tracks
 log = logging.getLogger(__name__)
 
 
-def windowed_refiner(
-    tracks: Tracks, ba: BAConfig, window: int, max_point_error_px: float
-) -> Callable[[Registration], None]:
-    """A callback that adjusts the newest `window` keyframes of a Registration and their points.
+class WindowedRefiner:
+    """Registration's refine callback: adjusts the newest `window` keyframes and their points.
 
     Only the window's points and the keyframes that see them are assembled (the others would be
     left out of the local BA anyway), so a call costs the same early and late in a long recording.
     """
-    index: list = [-1, None]  # revisits seen when the rows were grouped, and the grouping
 
-    def refine(reg: Registration) -> None:
-        if index[0] != len(reg.revisits):  # a closed loop renamed tracks
-            index[:] = [len(reg.revisits), PointRows(tracks)]
+    def __init__(self, tracks: Tracks, ba: BAConfig, window: int, max_point_error_px: float):
+        self.tracks, self.ba, self.window, self.max_point_error_px = tracks, ba, window, max_point_error_px
+        self._rows = PointRows(tracks)
+        self._revisits = 0  # loops closed when the rows were grouped (a loop renames tracks)
+
+    def __call__(self, reg: Registration) -> None:
+        tracks = self.tracks
+        if self._revisits != len(reg.revisits):
+            self._rows, self._revisits = PointRows(tracks), len(reg.revisits)
         frames = sorted(reg.frames)
         # the two oldest keyframes stay fixed: with the shared points they hold the gauge and scale
-        keyframes = np.array(frames[max(2, len(frames) - window) :])
+        keyframes = np.array(frames[max(2, len(frames) - self.window) :])
         seen = np.unique(np.concatenate([tracks.points_in(int(f))[0] for f in keyframes]))
         pids = [int(t) for t in seen if int(t) in reg.points_w]
-        rows = index[1].rows(np.array(pids, np.int64))
+        rows = self._rows.rows(np.array(pids, np.int64))
         rows = rows[np.isin(tracks.point_frame[rows], frames)]
         T_wc = {int(f): np.linalg.inv(reg.T_cw[int(f)]) for f in np.unique(tracks.point_frame[rows])}
         T_wc.update({int(f): np.linalg.inv(reg.T_cw[int(f)]) for f in keyframes})
-        m = assemble_map(
-            tracks, T_wc, {t: reg.points_w[t] for t in pids}, LineEstimates.empty(), point_rows=rows
-        )
-        cull_observations(m, max_point_error_px, max_point_error_px, ba.min_views)
+        points = {t: reg.points_w[t] for t in pids}
+        m = assemble_map(tracks, T_wc, points, LineEstimates.empty(), point_rows=rows)
+        cull_observations(m, self.max_point_error_px, self.max_point_error_px, self.ba.min_views)
         try:
-            res = local_ba(m, keyframes, ba)
+            res = local_ba(m, keyframes, self.ba)
         except (GeometryError, OptimizationError) as exc:
             log.debug("windowed BA skipped: %s", exc)
             return
@@ -56,5 +57,3 @@ def windowed_refiner(
             reg.T_cw[int(k)] = np.linalg.inv(T)
         for p, x in zip(res.map.points.ids, res.map.points.xyz, strict=True):
             reg.points_w[int(p)] = x
-
-    return refine
