@@ -16,6 +16,7 @@ from papl_mapper.backend.factors import R  # noqa: E402
 from papl_mapper.backend.problem import KIND_ANCHORED, build_problem  # noqa: E402
 from papl_mapper.backend.synthetic import SceneSpec, errors, make_scene, perturb  # noqa: E402
 from papl_mapper.geometry.lines import line_parallax_deg  # noqa: E402
+from papl_mapper.map import LineState  # noqa: E402
 
 # named tolerances
 ANGLE_TOL_DEG = 1e-9  # exact geometry
@@ -185,3 +186,24 @@ def test_graduated_local_ba_moves_only_the_window(truth):
     np.testing.assert_array_equal(res.map.keyframes.T_wc[:4], start.keyframes.T_wc[:4])
     assert res.final_cost < res.initial_cost
     assert not np.allclose(res.map.keyframes.T_wc[4:], start.keyframes.T_wc[4:])
+
+
+def test_lines_without_parallax_are_left_out_before_ba(truth):
+    """Lines whose observing centres span < 0.4 deg about their start line (anchored: the axis through the
+    midpoint; this scene has lines along the path) are left out with a reason and come back unchanged; the
+    others are adjusted."""
+    start = perturb(truth, **START)
+    obs = start.lines.obs_ids
+    row = np.searchsorted(start.lines.ids, obs[:, 0])
+    kf = np.searchsorted(start.keyframes.ids, obs[:, 1])
+    ends = start.lines.endpoints_w
+    d = ends[:, 1] - ends[:, 0]
+    anch = start.lines.state == LineState.ANCHORED
+    d[anch] = start.axes.directions[np.argmax(start.lines.axis_weights[anch], 1)]
+    L = geo.plucker_from_point_dir(ends.mean(1), d / np.linalg.norm(d, axis=1, keepdims=True))
+    flat = line_parallax_deg(L, row, start.keyframes.T_wc[kf, :3, 3], len(L)) < 0.4
+    assert 0 < flat.sum() < len(L)
+    res = global_ba(start, BAConfig(axis_prior_sigma_deg=LOOSE_AXIS_PRIOR, min_line_parallax_deg=0.4))
+    assert res.dropped["lines_low_parallax"] == flat.sum()
+    np.testing.assert_array_equal(res.map.lines.endpoints_w[flat], start.lines.endpoints_w[flat])
+    assert not np.allclose(res.map.lines.endpoints_w[~flat], start.lines.endpoints_w[~flat])

@@ -138,7 +138,7 @@ def _graduated(
     measured worse (Open-Structure livingroom2, paper form: ATE 0.031 m against 0.012 m)."""
     wide = adjust(
         m,
-        replace(config, huber_k=config.huber_k_start, huber_k_start=None, min_line_parallax_deg=0.0),
+        replace(config, huber_k=config.huber_k_start, huber_k_start=None),
         progress,
     )
     tight_cfg = replace(config, huber_k_start=None)

@@ -31,9 +31,10 @@ class BAConfig:
     (Open-Structure livingroom2: anchored line RMS 9.0 px with huber_k only, 1.3 px with 20 then 1.345,
     see benchmarks/line_representations.py). None: one stage."""
     min_line_parallax_deg: float = 0.0
-    """After BA, a line whose observing camera centres span less than this angle about it (its depth is
-    unobservable, e.g. driven hundreds of scene sizes away along a pose-degenerate direction) keeps its input
-    geometry, counted in BAResult.dropped. Applies to every line representation alike; 0 turns it off."""
+    """A line whose observing camera centres span less than this angle about it has no observable depth (as
+    points need a triangulation angle): before BA such lines (judged on their start geometry) are left out
+    and kept unchanged; after BA a line that became so (e.g. driven hundreds of scene sizes away) keeps its
+    input geometry; both counted in BAResult.dropped. Same rule for every line representation; 0 = off."""
     axis_prior_sigma_deg: float = 2.0
     """The paper's axis error e_a: how far (1 sigma) an axis may move from its value before BA."""
     min_axis_weight: float = 0.1

@@ -13,6 +13,7 @@ import numpy as np
 from papl_mapper import geometry as geo
 from papl_mapper.backend.config import BAConfig
 from papl_mapper.errors import GeometryError
+from papl_mapper.geometry.lines import line_parallax_deg
 from papl_mapper.map import LineState, Map
 
 log = logging.getLogger(__name__)
@@ -278,6 +279,19 @@ def _build_lines(
         ((views < config.min_views) & ~bad_len).sum(),
         f"seen from fewer than {config.min_views} keyframes",
     )
+    if config.min_line_parallax_deg > 0 and len(o_row):
+        # as points need a triangulation angle: lines whose observing centres span too small an angle about
+        # their start geometry have no observable depth (e.g. walked along); each representation judges its
+        # own start line (anchored: the axis direction through the midpoint)
+        par = line_parallax_deg(geo.normalize_plucker(L0), o_row, T[o_kf, :3, 3], M)
+        flat = line_keep & (par < config.min_line_parallax_deg)
+        _drop(
+            dropped,
+            "lines_low_parallax",
+            flat.sum(),
+            f"cameras span < {config.min_line_parallax_deg} deg about the line (depth unobservable)",
+        )
+        line_keep &= ~flat
     if in_window is not None:
         seen = np.zeros(M, bool)
         seen[o_row[in_window[o_kf]]] = True
