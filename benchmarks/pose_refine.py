@@ -176,6 +176,11 @@ def micro_timing(repeats: int = 200) -> dict:
     return out
 
 
+def _write(path: Path, overrides: list[str], rows: list[dict]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"machine": machine_info(), "overrides": overrides, "rows": rows}, indent=1))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default=",".join(SCENES))
@@ -252,10 +257,8 @@ def main() -> None:
                     f"refine {b_ms} ms/frame, a-PnP {a_ms} ms/frame, map {t_map:.1f} s",
                     flush=True,
                 )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(
-        json.dumps({"machine": machine_info(), "overrides": args.set, "rows": rows}, indent=1, default=float)
-    )
+            _write(args.out, args.set, rows)  # after every map: a long run interrupted keeps its rows
+    _write(args.out, args.set, rows)
     print(f"wrote {args.out}")
 
 
