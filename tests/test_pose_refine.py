@@ -120,7 +120,7 @@ def test_perturbed_pose_recovered_without_noise(terms: str) -> None:
     if terms == "all":
         kw.update(dirs_w=AXES_W, dirs_c=_dirs_c(T_true))
     pts = (X_w, uv) if terms != "lines" else (np.zeros((0, 3)), np.zeros((0, 2)))
-    T, st = refine_pose(T0, *pts, K, config=PoseRefineConfig(iterations=30), **kw)
+    T, st = refine_pose(T0, *pts, K, config=PoseRefineConfig(iterations=30, lines=True), **kw)
     assert rotation_angle_deg(T[:3, :3], T_true[:3, :3]) < MAX_ROT_NOISELESS_DEG
     assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < MAX_TRANS_NOISELESS
     assert st.cost_final < st.cost_initial
@@ -133,7 +133,8 @@ def test_perturbed_pose_recovered_with_noise() -> None:
     seg = seg + rng.normal(0, 0.5, seg.shape)
     d_c = _dirs_c(T_true) @ so3_exp(rng.normal(0, np.radians(0.1), 3)).T
     T0 = retract(np.eye(4), np.array([0.02, -0.03, 0.015, 0.05, -0.04, 0.03])) @ T_true
-    T, st = refine_pose(T0, X_w, uv, K, lines_w=ends_w, line_xy=seg, dirs_w=AXES_W, dirs_c=d_c)
+    cfg = PoseRefineConfig(lines=True)
+    T, st = refine_pose(T0, X_w, uv, K, lines_w=ends_w, line_xy=seg, dirs_w=AXES_W, dirs_c=d_c, config=cfg)
     assert rotation_angle_deg(T[:3, :3], T_true[:3, :3]) < MAX_ROT_NOISY_DEG
     assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < MAX_TRANS_NOISY
     assert (st.n_points, st.n_lines, st.n_directions) == (60, 20, 3)
@@ -237,7 +238,7 @@ def test_frame_refiner_uses_map_lines_and_axes() -> None:
         np.zeros((0, 4)),
     )
     m.axes = Axes(AXES_W.copy(), 2)
-    ref = FrameRefiner.from_map(tracks, m)
+    ref = FrameRefiner.from_map(tracks, m, PoseRefineConfig(lines=True))
     T0 = retract(np.eye(4), np.array([0.01, -0.01, 0.01, 0.02, 0.01, -0.02])) @ T_true
     T, st = ref.refine(0, T0, X_w, uv)
     assert (st.n_lines, st.n_directions) == (n, 3)

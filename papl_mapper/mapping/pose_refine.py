@@ -19,7 +19,8 @@ when there are no axes yet, greedy sign-free clusters of R_wc v_c over the regis
 (sigma >= `direction_sigma_deg`; left out above `max_direction_spread_deg`).
 
 Call sites (`track_pnp` takes the extra terms as keywords; without them it is unchanged):
-(a) registration, `incremental._pnp`: `dirs_w, sigma = reg_dirs(reg.T_cw)` with one
+(a) registration, `incremental._pnp`, when `cfg.pnp.refine.in_registration`:
+    `dirs_w, sigma = reg_dirs(reg.T_cw)` with one
     `reg_dirs = RegistrationDirections(tracks)` per run, then `track_pnp(..., dirs_w=dirs_w,
     dirs_c=frame_directions(tracks, f), dirs_sigma_deg=sigma)`;
 (b) all-frames trajectory, `pipelines.run.frame_poses`: `refiner = FrameRefiner.from_map(tracks, m,
@@ -52,10 +53,16 @@ class PoseRefineConfig:
 
     enabled: bool = True
     """Refine the PnP pose at all (False keeps OpenCV's points-only LM pose)."""
-    lines: bool = True
-    """Add the endpoint-to-line distances of map lines seen in the frame."""
+    lines: bool = False
+    """Add the endpoint-to-line distances of map lines seen in the frame. Off: on the six 10 s scenes
+    it left ATE unchanged (+-0.001%) and raised the frame-to-frame rotation error on Atlanta
+    (0.010 -> 0.015 deg)."""
     directions: bool = True
     """Add the rotation term of vanishing directions matched to world directions."""
+    in_registration: bool = False
+    """Also use the directions while frames are registered (world directions from the keyframes so
+    far, `RegistrationDirections`). Off: it helped Atlanta (0.639 -> 0.226% ATE) but hurt the demo
+    (0.064 -> 0.164%) and the garage (0.405 -> 0.784%)."""
     point_sigma_px: float = 1.0
     """Standard deviation of a point's reprojection error."""
     line_sigma_px: float = 1.0
