@@ -186,6 +186,7 @@ def main() -> None:
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--no-a", action="store_true", help="skip the registration hook (a)")
     ap.add_argument("--a-sigmas", default="0.5", help="direction sigmas (deg) of (a) to try, comma-separated")
+    ap.add_argument("--a-below", default="0", help="directions_below_inliers values of (a) to try")
     ap.add_argument("--a-vertical", action="store_true", help="also try (a) with the vertical direction only")
     ap.add_argument("--b", default=",".join(B_VARIANTS), help="b variants on the baseline map")
     ap.add_argument("--set", nargs="*", default=[], help="config overrides key=value")
@@ -213,22 +214,26 @@ def main() -> None:
         tracks = Tracks.load(tpath)
         base_set = [*args.set, f"mapping.pnp.seed={seed}"]
         cfg = load_config(RunConfig, None, base_set)
-        regs: list[tuple[str, bool | None, float]] = [("a:none", None, 0.0)]
+        regs: list[tuple[str, bool | None, float, int]] = [("a:none", None, 0.0, 0)]
         if not args.no_a:
             for sig in (float(x) for x in args.a_sigmas.split(",")):
-                regs.append((f"a:dirs{sig:g}", False, sig))
-                if args.a_vertical:
-                    regs.append((f"a:vert{sig:g}", True, sig))
-        for a_name, vertical, sigma in regs:
+                for below in (int(x) for x in args.a_below.split(",")):
+                    tag = f"{sig:g}" + (f"<{below}" if below > 0 else "")
+                    regs.append((f"a:dirs{tag}", False, sig, below))
+                    if args.a_vertical:
+                        regs.append((f"a:vert{tag}", True, sig, below))
+        for a_name, vertical, sigma, below in regs:
             t_a: list[float] = []
             ctx = (
                 patched(inc, "_pnp", make_pnp_with_directions(t_a, vertical))
                 if vertical is not None
                 else None
             )
-            a_cfg = load_config(
-                RunConfig, None, [*base_set, f"mapping.pnp.refine.direction_sigma_deg={sigma}"]
-            )
+            a_over = [
+                f"mapping.pnp.refine.direction_sigma_deg={sigma}",
+                f"mapping.pnp.refine.directions_below_inliers={below}",
+            ]
+            a_cfg = load_config(RunConfig, None, [*base_set, *a_over])
             t0 = time.perf_counter()
             with ctx or contextlib.nullcontext():
                 m, _ = run_mod.map_tracks(tracks, a_cfg if vertical is not None else cfg)

@@ -317,3 +317,12 @@ def test_frame_refiner_takes_axis_spread_from_keyframes() -> None:
     assert ref.dirs_sigma_deg[1] > 1.0  # one observation 1.5 deg off: sigma 1.5 / 1.18
     _, st = ref.refine(0, T_true, X_w, uv)
     assert st.n_directions == 2  # the scattered one exceeds max_direction_spread_deg
+
+
+def test_track_pnp_uses_directions_only_below_the_inlier_count() -> None:
+    T_true, X_w, uv, _, _ = _scene(seed=12)
+    cfg = PnPConfig(refine=PoseRefineConfig(directions_below_inliers=30))
+    res = track_pnp(X_w, uv, K, None, cfg, dirs_w=AXES_W, dirs_c=_dirs_c(T_true))
+    assert res.ok and res.refine is None  # 60 inliers: points are strong enough
+    res = track_pnp(X_w[:20], uv[:20], K, None, cfg, dirs_w=AXES_W, dirs_c=_dirs_c(T_true))
+    assert res.ok and res.refine is not None and res.refine.n_directions == 3

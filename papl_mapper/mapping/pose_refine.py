@@ -59,6 +59,9 @@ class PoseRefineConfig:
     (0.010 -> 0.015 deg)."""
     directions: bool = True
     """Add the rotation term of vanishing directions matched to world directions."""
+    directions_below_inliers: int = 0
+    """Use the directions only for poses with fewer PnP inliers than this, where points are weak (0:
+    always)."""
     in_registration: bool = False
     """Also use the directions while frames are registered (world directions from the keyframes so
     far, `RegistrationDirections`). Off: it helped Atlanta (0.639 -> 0.226% ATE) but hurt the demo

@@ -104,6 +104,8 @@ def track_pnp(
     rc = cfg.refine
     has_lines = rc.lines and lines_w is not None and line_xy is not None and len(lines_w) > 0
     has_dirs = rc.directions and dirs_w is not None and dirs_c is not None and len(dirs_w) > 0
+    weak = rc.directions_below_inliers <= 0 or int(mask.sum()) < rc.directions_below_inliers
+    has_dirs = has_dirs and weak
     if rc.enabled and (has_lines or has_dirs):
         d_w = d_c = sig = None
         if has_dirs:
