@@ -70,7 +70,7 @@ class PoseRefineConfig:
     """Standard deviation of a point's reprojection error."""
     line_sigma_px: float = 1.0
     """Standard deviation of an endpoint's distance to its projected line."""
-    direction_sigma_deg: float = 0.5
+    direction_sigma_deg: float = 1.0
     """Standard deviation of the angle between a vanishing direction and its world direction (the
     smallest one: a direction whose vanishing points scatter more gets its own, larger sigma)."""
     huber: float = 2.0
@@ -280,9 +280,9 @@ def refine_pose(
         dirs_w, dirs_c = np.zeros((0, 3)), np.zeros((0, 3))
     sig = np.full(len(dirs_w), cfg.direction_sigma_deg)
     if dirs_sigma_deg is not None and len(dirs_w):
-        sig = np.fmax(sig, np.asarray(dirs_sigma_deg, np.float64).reshape(-1))
-        keep = sig <= cfg.max_direction_spread_deg
-        dirs_w, dirs_c, sig = dirs_w[keep], dirs_c[keep], sig[keep]
+        spread = np.asarray(dirs_sigma_deg, np.float64).reshape(-1)
+        keep = ~(spread > cfg.max_direction_spread_deg)  # NaN (unknown spread) is kept
+        dirs_w, dirs_c, sig = dirs_w[keep], dirs_c[keep], np.fmax(sig[keep], spread[keep])
     prob = _Problem(K, points_w, uv, L_w, line_xy, dirs_w, dirs_c, np.radians(sig), cfg)
     stats = RefineStats(n_points=len(points_w), n_lines=len(L_w), n_directions=len(dirs_w))
     T = T0.copy()
