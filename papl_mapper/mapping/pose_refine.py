@@ -64,8 +64,9 @@ class PoseRefineConfig:
     always)."""
     in_registration: bool = False
     """Also use the directions while frames are registered (world directions from the keyframes so
-    far, `RegistrationDirections`). Off: it helped Atlanta (0.639 -> 0.226% ATE) but hurt the demo
-    (0.064 -> 0.164%) and the garage (0.405 -> 0.784%)."""
+    far, `RegistrationDirections`). Off: at sigma 1 deg it helped Atlanta (0.639 -> 0.226% ATE,
+    0.291 -> 0.234%), left the corridors within +-0.02%, but hurt the demo (0.064 -> 0.115%); the
+    garage moves more under a 0.05 px threshold change than under this switch."""
     point_sigma_px: float = 1.0
     """Standard deviation of a point's reprojection error."""
     line_sigma_px: float = 1.0
