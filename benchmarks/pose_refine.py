@@ -185,6 +185,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--no-a", action="store_true", help="skip the registration hook (a)")
+    ap.add_argument("--skip-base", action="store_true", help="skip the map without hook (a)")
     ap.add_argument("--a-sigmas", default="0.5", help="direction sigmas (deg) of (a) to try, comma-separated")
     ap.add_argument("--a-below", default="0", help="directions_below_inliers values of (a) to try")
     ap.add_argument("--a-vertical", action="store_true", help="also try (a) with the vertical direction only")
@@ -214,7 +215,7 @@ def main() -> None:
         tracks = Tracks.load(tpath)
         base_set = [*args.set, f"mapping.pnp.seed={seed}"]
         cfg = load_config(RunConfig, None, base_set)
-        regs: list[tuple[str, bool | None, float, int]] = [("a:none", None, 0.0, 0)]
+        regs: list[tuple[str, bool | None, float, int]] = [] if args.skip_base else [("a:none", None, 0.0, 0)]
         if not args.no_a:
             for sig in (float(x) for x in args.a_sigmas.split(",")):
                 for below in (int(x) for x in args.a_below.split(",")):

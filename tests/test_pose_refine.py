@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from papl_mapper.geometry.lines import plucker_from_endpoints
-from papl_mapper.geometry.se3 import make_T, retract, rotation_angle_deg, so3_exp
+from papl_mapper.geometry.se3 import make_T, retract, rotation_angle_deg, so3_exp, so3_log
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map
 from papl_mapper.mapping.pose_refine import (
     FrameRefiner,
@@ -19,6 +19,7 @@ from papl_mapper.mapping.pose_refine import (
     line_residuals,
     match_directions,
     point_residuals,
+    points_rotation_std_deg,
     refine_pose,
     world_directions,
 )
@@ -326,3 +327,27 @@ def test_track_pnp_uses_directions_only_below_the_inlier_count() -> None:
     assert res.ok and res.refine is None  # 60 inliers: points are strong enough
     res = track_pnp(X_w[:20], uv[:20], K, None, cfg, dirs_w=AXES_W, dirs_c=_dirs_c(T_true))
     assert res.ok and res.refine is not None and res.refine.n_directions == 3
+
+
+def test_points_rotation_std_matches_monte_carlo_and_gates_directions() -> None:
+    T_true, X_w, uv, _, _ = _scene(n_pts=12, n_lines=0, seed=13, spread=0.6)
+    std = points_rotation_std_deg(T_true, X_w, uv, K, 1.0)
+    rng = np.random.default_rng(14)
+    errs = []
+    for _ in range(60):
+        T, _ = refine_pose(
+            T_true, X_w, uv + rng.normal(0, 1.0, uv.shape), K, config=PoseRefineConfig(huber=1e9)
+        )
+        errs.append(so3_log(T[:3, :3] @ T_true[:3, :3].T))
+    # the largest per-axis spread of the estimates is the covariance's largest eigenvalue (to sampling error)
+    mc = np.degrees(np.sqrt(np.linalg.eigvalsh(np.cov(np.array(errs).T)).max()))
+    assert 0.7 * std < mc < 1.3 * std
+    T_wide, X_wide, uv_wide, _, _ = _scene(n_pts=60, n_lines=0, seed=13)
+    assert points_rotation_std_deg(T_wide, X_wide, uv_wide, K, 1.0) < 0.5 * std
+    cfg = PnPConfig(
+        min_inliers=8, refine=PoseRefineConfig(directions_above_rotation_std_deg=0.5 * (std + 1e-9))
+    )
+    res = track_pnp(X_w, uv, K, None, cfg, dirs_w=AXES_W, dirs_c=_dirs_c(T_true))
+    assert res.refine is not None  # bunched points: uncertain rotation, directions used
+    res = track_pnp(X_wide, uv_wide, K, None, cfg, dirs_w=AXES_W, dirs_c=_dirs_c(T_wide))
+    assert res.refine is None  # well spread points: rotation certain enough

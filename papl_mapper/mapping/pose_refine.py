@@ -62,6 +62,9 @@ class PoseRefineConfig:
     directions_below_inliers: int = 0
     """Use the directions only for poses with fewer PnP inliers than this, where points are weak (0:
     always)."""
+    directions_above_rotation_std_deg: float = 0.0
+    """Use the directions only where the points-only rotation is this uncertain (1-sigma, from the
+    Gauss-Newton normal matrix at `point_sigma_px`; 0: always)."""
     in_registration: bool = False
     """Also use the directions while frames are registered (world directions from the keyframes so
     far, `RegistrationDirections`). Off: at sigma 1 deg it helped Atlanta (0.639 -> 0.226% ATE,
@@ -234,6 +237,22 @@ class _Problem:
             H += Wj.T @ Jf
             g += Wj.T @ r.reshape(-1)
         return H, g, cost
+
+
+def points_rotation_std_deg(
+    T_cw: np.ndarray, points_w: np.ndarray, uv: np.ndarray, K: np.ndarray, sigma_px: float
+) -> float:
+    """Largest 1-sigma rotation uncertainty (deg) of a pose from its points alone (Gauss-Newton
+    covariance sigma^2 (J^T J)^-1, rotation block); inf when the points do not fix the pose."""
+    if len(points_w) < 3:
+        return float("inf")
+    _, J, _ = point_residuals(T_cw, points_w, uv, K, jacobian=True)
+    Jf = J.reshape(-1, 6)
+    try:
+        cov = np.linalg.inv(Jf.T @ Jf) * sigma_px**2
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
 
 
 def _as_plucker(lines_w: np.ndarray) -> np.ndarray:

@@ -12,7 +12,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from papl_mapper.mapping.pose_refine import PoseRefineConfig, RefineStats, match_directions, refine_pose
+from papl_mapper.mapping.pose_refine import (
+    PoseRefineConfig,
+    RefineStats,
+    match_directions,
+    points_rotation_std_deg,
+    refine_pose,
+)
 
 
 @dataclass
@@ -105,6 +111,9 @@ def track_pnp(
     has_lines = rc.lines and lines_w is not None and line_xy is not None and len(lines_w) > 0
     has_dirs = rc.directions and dirs_w is not None and dirs_c is not None and len(dirs_w) > 0
     weak = rc.directions_below_inliers <= 0 or int(mask.sum()) < rc.directions_below_inliers
+    if has_dirs and weak and rc.directions_above_rotation_std_deg > 0:
+        std = points_rotation_std_deg(T_cw, points_w[mask], pixels[mask], K, rc.point_sigma_px)
+        weak = std > rc.directions_above_rotation_std_deg
     has_dirs = has_dirs and weak
     if rc.enabled and (has_lines or has_dirs):
         d_w = d_c = sig = None
