@@ -65,11 +65,12 @@ class PoseRefineConfig:
     directions_above_rotation_std_deg: float = 0.0
     """Use the directions only where the points-only rotation is this uncertain (1-sigma, from the
     Gauss-Newton normal matrix at `point_sigma_px`; 0: always)."""
-    in_registration: bool = False
+    in_registration: bool = True
     """Also use the directions while frames are registered (world directions from the keyframes so
-    far, `RegistrationDirections`). Off: at sigma 1 deg it helped Atlanta (0.639 -> 0.226% ATE,
-    0.291 -> 0.234%), left the corridors within +-0.02%, but hurt the demo (0.064 -> 0.115%); the
-    garage moves more under a 0.05 px threshold change than under this switch."""
+    far, `RegistrationDirections`). On (10 s scenes, sigma 1 deg): Atlanta 0.639 -> 0.226% ATE and
+    0.291 -> 0.234%, outside the 0.58-0.68% / 0.29-0.38% that irrelevant threshold changes give;
+    corridors and the demo stay inside their bands (demo 0.064 -> 0.115%, band 0.064-0.232%); the
+    garage swings 0.4-2.4% under any change, this one included."""
     point_sigma_px: float = 1.0
     """Standard deviation of a point's reprojection error."""
     line_sigma_px: float = 1.0
