@@ -239,7 +239,7 @@ def main() -> None:
             with ctx or contextlib.nullcontext():
                 m, _ = run_mod.map_tracks(tracks, a_cfg if vertical is not None else cfg)
             t_map = time.perf_counter() - t0
-            b_names = args.b.split(",") if vertical is None and seed == 0 else ["none"]
+            b_names = args.b.split(",") if seed == 0 else ["none"]
             b_list = {k: B_VARIANTS[k] for k in b_names}
             for b_name, rc in b_list.items():
                 t_b: list[float] = []
