@@ -301,3 +301,14 @@ def test_similarity_T_cw_keeps_what_the_camera_sees():
     X = rng.normal(size=(5, 3))
     T2 = similarity_T_cw(T, R, t, s)
     np.testing.assert_allclose((s * X @ R.T + t) @ T2[:3, :3].T + T2[:3, 3], s * (X @ T[:3, :3].T + T[:3, 3]))
+
+
+def test_similarity_T_cw_batched_equals_one_at_a_time():
+    from papl_mapper.geometry.se3 import make_T, similarity_T_cw, so3_exp
+
+    rng = np.random.default_rng(4)
+    T = make_T(so3_exp(rng.normal(size=(6, 3))), rng.normal(size=(6, 3)))
+    R, t, s = so3_exp(rng.normal(size=(6, 3))), rng.normal(size=(6, 3)), rng.uniform(0.5, 2.0, 6)
+    batched = similarity_T_cw(T, R, t, s)
+    for k in range(6):
+        np.testing.assert_allclose(batched[k], similarity_T_cw(T[k], R[k], t[k], float(s[k])), atol=1e-12)

@@ -94,11 +94,13 @@ def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return out
 
 
-def similarity_T_cw(T_cw: np.ndarray, R: np.ndarray, t: np.ndarray, scale: float) -> np.ndarray:
+def similarity_T_cw(T_cw: np.ndarray, R: np.ndarray, t: np.ndarray, scale: float | np.ndarray) -> np.ndarray:
     """World-to-camera pose after the world moves by x -> scale * R x + t (the camera keeps its shape,
-    so the camera-frame translation scales too)."""
-    R_cw = T_cw[:3, :3] @ R.T
-    return make_T(R_cw, scale * T_cw[:3, 3] - R_cw @ t)
+    so the camera-frame translation scales too). Batched over leading axes: (..., 4, 4), (..., 3, 3),
+    (..., 3), scalar or (...)."""
+    R_cw = T_cw[..., :3, :3] @ np.swapaxes(R, -1, -2)
+    scale = np.asarray(scale, np.float64)[..., None]
+    return make_T(R_cw, scale * T_cw[..., :3, 3] - np.einsum("...ij,...j->...i", R_cw, t))
 
 
 def project_points(K: np.ndarray, T_wc: np.ndarray, X_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -14,10 +14,9 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from papl_mapper.frontend.descriptors import match_descriptors
-from papl_mapper.geometry.se3 import similarity_T_cw
+from papl_mapper.geometry.se3 import similarity_T_cw, so3_exp, so3_log
 from papl_mapper.mapping.tracking import PnPConfig, track_pnp
 from papl_mapper.tracks import Tracks
 
@@ -115,7 +114,11 @@ def find_revisit(
     Xc = X_old @ T[:3, :3].T + T[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         uv_old = (Xc @ tracks.camera.K.T)[:, :2] / Xc[:, 2:3]
+    r, cam = cfg.search_radius_px, tracks.camera
     near = Xc[:, 2] > 0
+    with np.errstate(invalid="ignore"):  # only points that land within reach of a keypoint
+        near &= (uv_old[:, 0] > -r) & (uv_old[:, 0] < cam.width + r)
+        near &= (uv_old[:, 1] > -r) & (uv_old[:, 1] < cam.height + r)
     if near.sum() < cfg.min_inliers:
         return None
     old_ids, X_old, uv_old = old_ids[near], X_old[near], uv_old[near]
@@ -174,21 +177,25 @@ def close_loop(
     T_wc_loop = np.linalg.inv(revisit.T_cw)
     R = T_wc_loop[:3, :3] @ T_cw[f][:3, :3]
     t = scale * T_wc_loop[:3, :3] @ T_cw[f][:3, 3] + T_wc_loop[:3, 3]
-    rotvec = Rotation.from_matrix(R).as_rotvec()
+    rotvec = so3_log(R)
 
-    def part(g: int) -> tuple[np.ndarray, np.ndarray, float]:
-        a = float(np.clip((g - f0) / max(f - f0, 1), 0.0, 1.0))
-        return Rotation.from_rotvec(a * rotvec).as_matrix(), a * t, scale**a
+    def part(g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The share of the correction at frames g: rotations, translations and scales."""
+        a = np.clip((g - f0) / max(f - f0, 1), 0.0, 1.0)
+        return so3_exp(a[:, None] * rotvec), a[:, None] * t, scale**a
 
     for poses in (T_cw, T_cw_frames):
-        for g, T in poses.items():
-            if g > f0:
-                poses[g] = similarity_T_cw(T, *part(g))
+        later = np.array([g for g in poses if g > f0], np.int64)
+        if len(later):
+            moved = similarity_T_cw(np.stack([poses[int(g)] for g in later]), *part(later))
+            poses.update(zip(later.tolist(), moved, strict=True))
     born = _first_keyframe(tracks, points_w, T_cw)
-    for tid, g in born.items():
-        if g > f0:
-            Ra, ta, sa = part(g)
-            points_w[tid] = sa * Ra @ points_w[tid] + ta
+    tids = np.array([tid for tid, g in born.items() if g > f0], np.int64)
+    if len(tids):
+        Ra, ta, sa = part(np.array([born[int(tid)] for tid in tids], np.int64))
+        X = np.stack([points_w[int(tid)] for tid in tids])
+        moved = sa[:, None] * np.einsum("kij,kj->ki", Ra, X) + ta
+        points_w.update(zip(tids.tolist(), moved, strict=True))
     fused = _fuse(tracks, points_w, revisit.pairs, index)
     log.info(
         "revisit at frame %d of frame %d: %d tracks fused, drift %.3f (map units), scale %.3f",
