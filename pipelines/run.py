@@ -51,6 +51,7 @@ from papl_mapper.mapping.assemble import (
 from papl_mapper.mapping.culling import CullStats, cull_keyframes
 from papl_mapper.mapping.incremental import Registration, register_keyframes
 from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
+from papl_mapper.mapping.pose_refine import FrameRefiner
 from papl_mapper.mapping.structure import find_structure, line_weights
 from papl_mapper.mapping.tracking import track_pnp
 from papl_mapper.mapping.windowed import WindowedRefiner
@@ -455,6 +456,8 @@ def frame_poses(tracks: Tracks, m: Map, cfg: RunConfig) -> dict[int, np.ndarray]
     pid = m.points.ids
     out: dict[int, np.ndarray] = {}
     last = None
+    # the map's lines and axes refine each PnP pose (points alone drift in rotation where few)
+    refiner = FrameRefiner.from_map(tracks, m, cfg.mapping.pnp.refine)
     for f in range(len(tracks)):
         if f in kf:
             T_wc = kf[f]
@@ -463,10 +466,12 @@ def frame_poses(tracks: Tracks, m: Map, cfg: RunConfig) -> dict[int, np.ndarray]
             idx = np.minimum(np.searchsorted(pid, ids), max(len(pid) - 1, 0))
             known = pid[idx] == ids if len(pid) else np.zeros(len(ids), bool)
             guess = np.linalg.inv(last) if last is not None else None
-            res = track_pnp(m.points.xyz[idx[known]], uv[known], K, guess, cfg.mapping.pnp)
+            X, uv = m.points.xyz[idx[known]], uv[known]
+            res = track_pnp(X, uv, K, guess, cfg.mapping.pnp)
             if not res.ok:
                 continue
-            T_wc = np.linalg.inv(res.T_cw)
+            T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])
+            T_wc = np.linalg.inv(T_cw)
         last = out[f] = T_wc
     return out
 

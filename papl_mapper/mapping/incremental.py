@@ -19,6 +19,7 @@ from papl_mapper.frontend.descriptors import match_descriptors
 from papl_mapper.geometry.se3 import invert, similarity_T_cw
 from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
+from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions
 from papl_mapper.mapping.revisit import Revisit, RevisitConfig, TrackIndex, close_loop, find_revisit
 from papl_mapper.mapping.tracking import PnPConfig, PnPResult, track_pnp
 from papl_mapper.tracks import PointRows, Tracks
@@ -237,6 +238,9 @@ def _extend(
     since_refine = 0
     misses = 0
     last_keyframe = f1
+    rc = cfg.pnp.refine
+    use_dirs = rc.enabled and rc.directions and rc.in_registration
+    dirs = RegistrationDirections(tracks, vertical_only=rc.vertical_only) if use_dirs else None
     rows = PointRows(tracks)
     f = f1
     for f in range(f1 + 1, len(tracks)):
@@ -244,7 +248,7 @@ def _extend(
             last_T = reg.T_cw[f2]
             last_keyframe = f2
             continue
-        res, n_tracks = _pnp(tracks, reg, f, last_T, cfg)
+        res, n_tracks = _pnp(tracks, reg, f, last_T, cfg, dirs)
         if res is None or not res.ok:
             log.debug("frame %d not registered: %s", f, "no map points" if res is None else res.reason)
             misses += 1
@@ -284,7 +288,7 @@ def _extend(
             progress(f + 1, len(tracks), f"{len(reg.frames)} keyframes, {len(reg.points_w)} points")
     # frames between the segment's start and its initialisation pair are tracked backwards
     for g in range(f1 - 1, start - 1, -1):
-        res, _ = _pnp(tracks, reg, g, reg.T_cw[min(reg.T_cw)], cfg)
+        res, _ = _pnp(tracks, reg, g, reg.T_cw[min(reg.T_cw)], cfg, dirs)
         if res is None or not res.ok:
             break
         reg.T_cw[g] = res.T_cw
@@ -375,7 +379,12 @@ def _robust_sim3(x: np.ndarray, y: np.ndarray, cfg: IncrementalConfig) -> Sim3 |
 
 
 def _pnp(
-    tracks: Tracks, reg: Registration, f: int, guess: np.ndarray, cfg: IncrementalConfig
+    tracks: Tracks,
+    reg: Registration,
+    f: int,
+    guess: np.ndarray,
+    cfg: IncrementalConfig,
+    dirs: RegistrationDirections | None = None,
 ) -> tuple[PnPResult | None, int]:
     """PnP of frame f against the points mapped so far; None when too few of them are seen."""
     ids, uv = tracks.points_in(f)
@@ -383,4 +392,18 @@ def _pnp(
     if known.sum() < cfg.pnp.min_inliers:
         return None, len(ids)
     X = np.stack([reg.points_w[int(t)] for t in ids[known]])
-    return track_pnp(X, uv[known], tracks.camera.K, guess, cfg.pnp), len(ids)
+    if dirs is None:
+        return track_pnp(X, uv[known], tracks.camera.K, guess, cfg.pnp), len(ids)
+    # the vanishing directions of the keyframes so far hold the rotation where points are weak
+    dirs_w, sigma = dirs(reg.T_cw)
+    res = track_pnp(
+        X,
+        uv[known],
+        tracks.camera.K,
+        guess,
+        cfg.pnp,
+        dirs_w=dirs_w,
+        dirs_c=frame_directions(tracks, f),
+        dirs_sigma_deg=sigma,
+    )
+    return res, len(ids)
