@@ -12,7 +12,7 @@ from papl_mapper.eval import EvalConfig, Trajectory, evaluate, segment_visibilit
 from papl_mapper.eval.visibility import frustum_intervals, occluded_intervals
 from papl_mapper.map import Camera, Keyframes, Lines, LineState, Map
 from papl_mapper.synth.path import walkthrough
-from papl_mapper.synth.project import NEAR, _candidate_quads, occluded, project
+from papl_mapper.synth.project import NEAR, occluded, project, quads_in_view
 from papl_mapper.synth.scenes import make_scene
 
 # named tolerances
@@ -104,7 +104,7 @@ def test_counts_agree_with_a_per_sample_ray_test_on_a_synthetic_scene():
         ok = (z > NEAR) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= CAM.width - 0.5)
         ok &= (uv[:, 1] >= -0.5) & (uv[:, 1] <= CAM.height - 0.5)
         idx = np.flatnonzero(ok)
-        ok[idx[occluded(scene, Twc[:3, 3], mid[idx], _candidate_quads(scene, CAM, Twc))]] = False
+        ok[idx[occluded(scene, Twc[:3, 3], mid[idx], quads_in_view(scene.quad_corners, CAM, Twc))]] = False
         count += ok
     assert count.max() > 0 and (count == 0).any()  # the test sees some and misses some
     assert np.mean(count == vis.frames) >= BRUTE_AGREEMENT

@@ -25,6 +25,7 @@ import numpy as np
 
 from papl_mapper.errors import InputError
 from papl_mapper.map import Camera, Map
+from papl_mapper.synth.project import quads_in_view
 
 log = logging.getLogger(__name__)
 
@@ -162,20 +163,6 @@ def _clip(c0: np.ndarray, c1: np.ndarray, strict: bool) -> tuple[np.ndarray, np.
     return lo, hi
 
 
-def _quads_near_view(camera: Camera, T_wc: np.ndarray, quads: np.ndarray) -> np.ndarray:
-    """Indices of the quads not wholly behind the camera or wholly beyond one side of the image."""
-    T_cw = np.linalg.inv(T_wc)
-    Pc = quads @ T_cw[:3, :3].T + T_cw[:3, 3]  # (Q, 4, 3)
-    x, y, z = Pc[..., 0], Pc[..., 1], Pc[..., 2]
-    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    out = (z <= 0).all(1)
-    out |= (fx * x + (cx + 0.5) * z < 0).all(1)
-    out |= (fx * x + (cx + 0.5 - camera.width) * z > 0).all(1)
-    out |= (fy * y + (cy + 0.5) * z < 0).all(1)
-    out |= (fy * y + (cy + 0.5 - camera.height) * z > 0).all(1)
-    return np.flatnonzero(~out)
-
-
 def segment_visibility(
     endpoints_w: np.ndarray,
     camera: Camera,
@@ -212,7 +199,7 @@ def segment_visibility(
         seen = (tm >= lo[owner]) & (tm <= hi[owner])
         segs = np.flatnonzero(lo <= hi)
         if quads is not None and len(quads) and len(segs):
-            q = _quads_near_view(camera, T, quads)
+            q = quads_in_view(quads, camera, T)
             if len(q):
                 si, _, a, b = occluded_pairs(T[:3, 3], quads[q], ends[segs], margin)
                 if len(si):

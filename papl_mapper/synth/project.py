@@ -58,11 +58,11 @@ def occluded(
     return out
 
 
-def _candidate_quads(scene: Scene, camera: Camera, T_wc: np.ndarray) -> np.ndarray:
-    """Indices of the quads that can hide something in view: not wholly behind the camera or
-    wholly outside one side of the image."""
+def quads_in_view(quad_corners: np.ndarray, camera: Camera, T_wc: np.ndarray) -> np.ndarray:
+    """Indices of the quads (Q, 4, 3 corners) that can hide something in view: not wholly behind
+    the camera or wholly outside one side of the image."""
     T_cw = np.linalg.inv(T_wc)
-    Pc = scene.quad_corners @ T_cw[:3, :3].T + T_cw[:3, 3]  # (Q, 4, 3)
+    Pc = quad_corners @ T_cw[:3, :3].T + T_cw[:3, 3]  # (Q, 4, 3)
     x, y, z = Pc[..., 0], Pc[..., 1], Pc[..., 2]
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     out = (z <= 0).all(1)
@@ -81,7 +81,7 @@ def visible_points(
     ok = (z > NEAR) & _inside(camera, uv)
     idx = np.flatnonzero(ok)
     if occlusion and len(idx):
-        idx = idx[~occluded(scene, T_wc[:3, 3], X_w[idx], _candidate_quads(scene, camera, T_wc))]
+        idx = idx[~occluded(scene, T_wc[:3, 3], X_w[idx], quads_in_view(scene.quad_corners, camera, T_wc))]
     return idx, uv[idx]
 
 
@@ -102,7 +102,9 @@ def visible_segments(
     ok = (z > NEAR) & _inside(camera, uv)
     if occlusion and ok.any():
         idx = np.flatnonzero(ok)
-        ok[idx[occluded(scene, T_wc[:3, 3], flat[idx], _candidate_quads(scene, camera, T_wc))]] = False
+        ok[idx[occluded(scene, T_wc[:3, 3], flat[idx], quads_in_view(scene.quad_corners, camera, T_wc))]] = (
+            False
+        )
     ok = ok.reshape(-1, k)
     uv = uv.reshape(-1, k, 2)
     seen = np.flatnonzero(ok.sum(1) >= 2)
