@@ -122,26 +122,30 @@ def endpoint_distance_cm(est: Map, truth: Map, rows: np.ndarray) -> float:
 # ---- 1. synthetic scenes (the paper's toy experiment) ----------------------------------------
 
 
+def _scene_and_start(seed: int, rot: float, trans: float, tilt_deg: float):  # noqa: ANN202
+    """The paper's synthetic scene (lines tilted `tilt_deg` off their axes) and its perturbed start."""
+    spec = SceneSpec(
+        n_keyframes=30,
+        n_points=0,
+        lines_per_axis=(20, 20, 20),
+        step=0.2,
+        path_amplitude=3.0,
+        obs_noise_px=1.0,
+        line_direction_noise_deg=tilt_deg,
+        seed=seed,
+    )
+    truth = make_scene(spec)
+    start = perturb(truth, seed=100 + seed, rot_deg=rot, trans=trans, line_sigma=0.1, line_angle_deg=3.0)
+    axes_from_lines(start)
+    return truth, start
+
+
 def synthetic(seeds: list[int]) -> dict:
     out: dict = {}
     for name, (rot, trans) in SCENARIOS.items():
         rows = {rep: [] for rep in REPS}
         for seed in seeds:
-            spec = SceneSpec(
-                n_keyframes=30,
-                n_points=0,
-                lines_per_axis=(20, 20, 20),
-                step=0.2,
-                path_amplitude=3.0,
-                obs_noise_px=1.0,
-                line_direction_noise_deg=0.5,
-                seed=seed,
-            )
-            truth = make_scene(spec)
-            start = perturb(
-                truth, seed=100 + seed, rot_deg=rot, trans=trans, line_sigma=0.1, line_angle_deg=3.0
-            )
-            axes_from_lines(start)
+            truth, start = _scene_and_start(seed, rot, trans, tilt_deg=0.5)
             for rep in REPS:
                 est, st = run_ba(start, rep, optimize_poses=name != "fixed")
                 e = errors(est, truth, align="scale" if name != "fixed" else False)
@@ -179,22 +183,7 @@ def exact_directions(seeds: list[int]) -> dict:
     for tilt in (0.0, 0.5):
         err = {rep: [] for rep in ("4-p", "3-p", "3-p-paper")}
         for seed in seeds:
-            spec = SceneSpec(
-                n_keyframes=30,
-                n_points=0,
-                lines_per_axis=(20, 20, 20),
-                step=0.2,
-                path_amplitude=3.0,
-                obs_noise_px=1.0,
-                line_direction_noise_deg=tilt,
-                seed=seed,
-            )
-            truth = make_scene(spec)
-            rot, trans = SCENARIOS["small"]
-            start = perturb(
-                truth, seed=100 + seed, rot_deg=rot, trans=trans, line_sigma=0.1, line_angle_deg=3.0
-            )
-            axes_from_lines(start)
+            truth, start = _scene_and_start(seed, *SCENARIOS["small"], tilt_deg=tilt)
             for rep in err:
                 est, _ = run_ba(start, rep)
                 e = errors(est, truth, align="scale")

@@ -71,7 +71,6 @@ _REGISTRATION_FIELDS = {
     "revisits",
     "init_frames",
 }
-_REGISTRATION_OPTIONAL = {"first_view"}  # stored when Registration has it
 _REVISIT_FIELDS = {"frame", "T_cw", "pairs", "old_frame", "drift", "scale"}
 
 T = TypeVar("T")
@@ -244,8 +243,7 @@ def registration_storable() -> bool:
     """Whether this module stores every field of Registration and Revisit (else no checkpoint)."""
     reg = {f.name for f in dataclasses.fields(Registration)}
     rv = {f.name for f in dataclasses.fields(Revisit)}
-    known = _REGISTRATION_FIELDS <= reg <= _REGISTRATION_FIELDS | _REGISTRATION_OPTIONAL
-    return known and rv == _REVISIT_FIELDS
+    return reg == _REGISTRATION_FIELDS and rv == _REVISIT_FIELDS
 
 
 def _dict_arrays(d: dict[int, Any], shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -262,12 +260,6 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
     ang_ids, ang = _dict_arrays(reg.point_angle, ())
     rv = reg.revisits
     pairs = [np.asarray(r.pairs, np.int64).reshape(-1, 2) for r in rv]
-    extra = {}
-    if hasattr(reg, "first_view"):
-        fv = reg.first_view
-        extra["first_view_ids"] = np.fromiter(fv, np.int64, len(fv))
-        extra["first_view_frame"] = np.array([f for f, _ in fv.values()], np.int64)
-        extra["first_view_uv"] = np.array([uv for _, uv in fv.values()], np.float64).reshape(-1, 2)
     np.savez(
         folder / "registration.npz",
         frames=np.asarray(reg.frames, np.int64),
@@ -289,7 +281,6 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
         revisit_n_pairs=np.array([len(p) for p in pairs], np.int64),
         revisit_pairs=np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64),
         point_track=tracks.point_track,
-        **extra,
     )
 
 
@@ -329,13 +320,6 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
         revisits=revisits,
         init_frames=(int(a["init_frames"][0]), int(a["init_frames"][1])),
     )
-    if hasattr(reg, "first_view"):
-        if "first_view_ids" not in a:
-            raise ValueError("made before registrations had first views")
-        reg.first_view = {
-            int(t): (int(f), uv)
-            for t, f, uv in zip(a["first_view_ids"], a["first_view_frame"], a["first_view_uv"], strict=True)
-        }
     if set(reg.frames) - set(reg.T_cw) or len(reg.frames) != len(reg.T_cw):
         raise ValueError("keyframes and keyframe poses disagree")
     return reg, a["point_track"]
