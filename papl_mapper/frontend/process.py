@@ -22,6 +22,7 @@ import numpy as np
 
 from papl_mapper.errors import InputError
 from papl_mapper.frontend.camera import Undistorter, fit_camera
+from papl_mapper.frontend.features import FeatureConfig, KeyframeFeatures, OrbDetector, feature_tracks
 from papl_mapper.frontend.keyframes import KeyframeConfig, KeyframeSelector
 from papl_mapper.frontend.klt import FlowConfig
 from papl_mapper.frontend.lines import LBD, LineConfig, LineTracker, SegmentDetector
@@ -41,6 +42,7 @@ ProgressCallback = Callable[[int, int, str], None]
 # thread waiting for it after the last frame
 STEPS = (
     "decode",
+    "matching",
     "convert",
     "points",
     "lines",
@@ -66,6 +68,8 @@ class FrontendConfig:
     """Segment detection, fusion, tracking and LBD."""
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     """Keyframe selection."""
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    """Wide-baseline ORB features on keyframes, matched where KLT breaks (jumps, photo sets)."""
     vp: VPConfig = field(default_factory=lambda: VPConfig(track_gate_deg=3.0))
     """Vanishing directions (Atlanta world with a vertical prior). The vertical prior is carried
     from frame to frame by the point tracks' rotation (about 0.1 deg error per frame on the
@@ -128,6 +132,9 @@ class FrontendStats:
     """CPU seconds per step of the thread running it (OpenCV's own worker threads not included)."""
     frames: int = 0
     skipped: int = 0
+    breaks: int = 0  # frames where KLT lost most tracks of the previous frame (a jump)
+    feature_tracks: int = 0  # tracks chained from ORB matches across weak KLT links
+    feature_pairs_verified: int = 0
     keyframes: int = 0
     keyframe_reasons: dict[str, int] = field(default_factory=dict)  # first/forced/parallax/survival/...
     points_per_frame: float = 0.0
@@ -226,6 +233,8 @@ class _Run:
         self.lines = LineTracker(config.lines)
         self.lbd = LBD()
         self.selector = KeyframeSelector(config.keyframes)
+        self.orb = OrbDetector(config.features) if config.features.enabled else None
+        self.feats = KeyframeFeatures()
         self.total = recording.expected_frames()
         self.done = 0
         self.prev_gray: np.ndarray | None = None
@@ -274,6 +283,28 @@ class _Run:
         """Work-image pixels (N, 2) -> full-resolution pixels (integer pixel centres)."""
         return (np.asarray(uv, np.float64) + 0.5) / self.work_scale - 0.5
 
+    def _is_break(self, ids: np.ndarray) -> bool:
+        """KLT kept fewer than `break_survival` of the previous frame's tracks: the image jumped."""
+        if not self.p_track or self.orb is None:
+            return False
+        prev = self.p_track[-1]
+        return len(prev) > 0 and np.isin(prev, ids).mean() < self.config.features.break_survival
+
+    def _keyframe_before_break(self) -> None:
+        """Make the last processed frame a keyframe with features, so a match can bridge the break."""
+        if self.orb is None or not self.is_kf or self.is_kf[-1] or self.prev_gray is None:
+            return
+        self.is_kf[-1] = True
+        self.stats.keyframe_reasons["break"] = self.stats.keyframe_reasons.get("break", 0) + 1
+        self._detect_features(self.prev_gray, len(self.is_kf) - 1)
+
+    def _detect_features(self, gray: np.ndarray, row: int) -> None:
+        """ORB keypoints of a full-resolution frame (KLT-like precision; the work image halves it)."""
+        if self.orb is None:
+            return
+        uv, desc = self.orb.detect(gray)
+        self.feats.add(row, self.und.points(uv), desc)
+
     def frame(self, frame: Frame, pool: ThreadPoolExecutor | None) -> str:
         """Process one decoded frame; returns a progress message."""
         clock = self._clock
@@ -286,6 +317,7 @@ class _Run:
         clock.lap("convert")
         if _is_textureless(gray, self.config.min_texture_std):
             self.skipped.append(frame.index)
+            self._keyframe_before_break()
             self.prev_gray = self.prev_small = None
             clock.lap("convert")
             return f"frame {frame.index}: skipped (no texture)"
@@ -293,6 +325,10 @@ class _Run:
         restart = self.prev_gray is None
         pending = pool.submit(_timed, self._segments, gray) if pool is not None else None
         points.step(small, self.prev_small, force_detect=restart)
+        broken = not restart and self._is_break(points.ids)
+        if broken:
+            self.stats.breaks += 1
+            self._keyframe_before_break()
         uv = self._to_full(points.uv)
         clock.lap("points")
         timed = pending.result() if pending is not None else _timed(self._segments, gray)
@@ -308,7 +344,7 @@ class _Run:
         else:
             lines.step(segs, self._to_full(points.flow_from), self._to_full(points.flow_to))
         clock.lap("line_tracking")
-        kf = self.selector.update(points.ids, points.uv, force=restart)
+        kf = self.selector.update(points.ids, points.uv, force=restart or broken)
         if kf:
             reasons = self.stats.keyframe_reasons
             reasons[self.selector.last_reason] = reasons.get(self.selector.last_reason, 0) + 1
@@ -323,6 +359,7 @@ class _Run:
             self.pd_desc.append(pdesc)
             self.ld_row.append(self.n_lines + _positions(lines.ids, lids))
             self.ld_desc.append(ldesc)
+            self._detect_features(gray, row)
         clock.lap("descriptors")
         self.frame_index.append(frame.index)
         self.timestamps.append(frame.timestamp_s)
@@ -347,6 +384,40 @@ class _Run:
                 self._vp_add(*job)
         clock.restart()
         return f"frame {frame.index}: {k} points, {s} segments{', keyframe' if kf else ''}"
+
+    def _point_observations(self, is_kf: np.ndarray) -> dict[str, np.ndarray]:
+        """KLT point observations with the feature tracks matched across weak links added, in frame order."""
+        frame = np.concatenate(self.p_frame)
+        track = self.points.resolve(np.concatenate(self.p_track))
+        uv = np.concatenate(self.p_uv).reshape(-1, 2)
+        desc_row = _cat(self.pd_row, np.int64, (0,))
+        desc = _cat(self.pd_desc, np.uint8, (0, 32))
+        out = {"frame": frame, "track": track, "uv": uv, "desc_row": desc_row, "desc": desc}
+        if self.orb is None or not self.feats.frame:
+            return out
+        t0 = time.perf_counter()
+        ft = feature_tracks(
+            self.feats,
+            frame,
+            track,
+            int(track.max(initial=-1)) + 1,
+            self.config.features,
+        )
+        self.stats.seconds["matching"] = time.perf_counter() - t0
+        self.stats.feature_tracks = len(np.unique(ft.track))
+        self.stats.feature_pairs_verified = ft.pairs_verified
+        if len(ft.frame) == 0:
+            return out
+        order = np.argsort(np.concatenate([frame, ft.frame]), kind="stable")
+        new_pos = np.empty_like(order)
+        new_pos[order] = np.arange(len(order))
+        return {
+            "frame": np.concatenate([frame, ft.frame])[order],
+            "track": np.concatenate([track, ft.track])[order],
+            "uv": np.concatenate([uv, ft.uv])[order],
+            "desc_row": new_pos[np.concatenate([desc_row, len(frame) + np.arange(len(ft.frame))])],
+            "desc": np.concatenate([desc, ft.desc]),
+        }
 
     def finish(self) -> Tracks:
         """The Tracks, once the vanishing directions of all frames are in."""
@@ -376,22 +447,23 @@ class _Run:
             line_vp = np.full(len(line_frame), -1, np.int64)
             vp_dirs, vertical_vp = np.full((F, 3, 3), np.nan), np.full(F, -1, np.int64)
         self._clock.lap("vp_wait")
+        points = self._point_observations(is_kf)
         tracks = Tracks(
             camera=self.und.undistorted_camera,
             frame_index=np.array(self.frame_index, np.int64),
             timestamp=np.array(self.timestamps, np.float64),
             is_keyframe=is_kf,
-            point_frame=np.concatenate(self.p_frame),
-            point_track=self.points.resolve(np.concatenate(self.p_track)),
-            point_uv=np.concatenate(self.p_uv).reshape(-1, 2),
+            point_frame=points["frame"],
+            point_track=points["track"],
+            point_uv=points["uv"],
             line_frame=line_frame,
             line_track=self.lines.resolve(np.concatenate(self.l_track)),
             line_xy=line_xy,
             line_vp=line_vp,
             vp_dirs_c=vp_dirs,
             vertical_vp=vertical_vp,
-            point_desc_row=_cat(self.pd_row, np.int64, (0,)),
-            point_desc=_cat(self.pd_desc, np.uint8, (0, 32)),
+            point_desc_row=points["desc_row"],
+            point_desc=points["desc"],
             line_desc_row=_cat(self.ld_row, np.int64, (0,)),
             line_desc=_cat(self.ld_desc, np.uint8, (0, 32)),
             skipped_frames=np.array(self.skipped, np.int64),

@@ -115,3 +115,31 @@ def project_points(K: np.ndarray, T_wc: np.ndarray, X_w: np.ndarray) -> tuple[np
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     """Angle of R_a^T R_b in degrees."""
     return np.degrees(np.linalg.norm(so3_log(np.swapaxes(R_a, -1, -2) @ R_b), axis=-1))
+
+
+def bearings(x: np.ndarray) -> np.ndarray:
+    """Unit rays (N, 3) of normalised image coordinates (N, 2)."""
+    b = np.column_stack([x, np.ones(len(x))])
+    return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+
+def rotation_from_bearings(
+    b1: np.ndarray, b2: np.ndarray, iterations: int = 3
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R_21 (b2 ~ R_21 b1) of a camera turning in place, and each ray pair's residual angle (deg).
+
+    Kabsch on unit rays, refitted on the pairs within three times the median residual, so the
+    matches that move with parallax (or are wrong) do not pull the rotation. For a camera that also
+    translated, the residuals are the parallax left after the best rotation: a lower bound.
+    """
+    keep = np.ones(len(b1), bool)
+    R = np.eye(3)
+    for _ in range(iterations):
+        if keep.sum() < 3:
+            break
+        U, _, Vt = np.linalg.svd(b2[keep].T @ b1[keep])
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        err = np.degrees(np.arccos(np.clip(np.sum(b2 * (b1 @ R.T), axis=1), -1.0, 1.0)))
+        keep = err <= 3.0 * max(float(np.median(err)), 1e-6)
+    err = np.degrees(np.arccos(np.clip(np.sum(b2 * (b1 @ R.T), axis=1), -1.0, 1.0)))
+    return R, err

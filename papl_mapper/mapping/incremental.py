@@ -160,8 +160,15 @@ def _ray_angle_deg(point_index: np.ndarray, centres: np.ndarray, X: np.ndarray, 
 
 
 def _initialise(tracks: Tracks, keyframes: np.ndarray, cfg: IncrementalConfig) -> Registration | None:
+    """Two-view start from the first keyframe that has a usable partner, with its best partner.
+
+    An offline mapper can afford to compare partners: among those within `init_search_keyframes`,
+    the one with the most well-triangulated points (parallax of `init.strong_parallax_deg`, then the
+    most points) wins, not the first one over the thresholds, which is the shortest usable baseline.
+    """
     K = tracks.camera.K
     for a in range(len(keyframes)):
+        best: tuple[tuple[int, int], int, np.ndarray, object] | None = None
         for b in range(a + 1, min(len(keyframes), a + 1 + cfg.init_search_keyframes)):
             f1, f2 = int(keyframes[a]), int(keyframes[b])
             common, uv1, uv2 = _common(tracks, f1, f2)
@@ -169,15 +176,22 @@ def _initialise(tracks: Tracks, keyframes: np.ndarray, cfg: IncrementalConfig) -
             if not res.ok:
                 log.debug("init %d-%d: %s", f1, f2, res.reason)
                 continue
-            reg = Registration(frames=[f1, f2], init_frames=(f1, f2))
-            reg.T_cw[f1] = np.eye(4)
-            T2 = np.eye(4)
-            T2[:3, :3], T2[:3, 3] = res.R_21, res.t_21
-            reg.T_cw[f2] = T2
-            for tid, X in zip(common[res.point_index], res.points_1, strict=True):
-                reg.points_w[int(tid)] = X
-            log.info("initialised on keyframes %d and %d: %s", f1, f2, res.reason)
-            return reg
+            score = (res.strong_points, len(res.point_index))
+            if best is None or score > best[0]:
+                best = (score, f2, common, res)
+        if best is None:
+            continue
+        _, f2, common, res = best
+        f1 = int(keyframes[a])
+        reg = Registration(frames=[f1, f2], init_frames=(f1, f2))
+        reg.T_cw[f1] = np.eye(4)
+        T2 = np.eye(4)
+        T2[:3, :3], T2[:3, 3] = res.R_21, res.t_21
+        reg.T_cw[f2] = T2
+        for tid, X in zip(common[res.point_index], res.points_1, strict=True):
+            reg.points_w[int(tid)] = X
+        log.info("initialised on keyframes %d and %d: %s", f1, f2, res.reason)
+        return reg
     return None
 
 

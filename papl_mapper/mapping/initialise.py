@@ -1,9 +1,11 @@
 """Two-view initialisation: relative pose and first points from matched normalised coordinates.
 
-Both an essential matrix and a homography are fitted with RANSAC; the homography is chosen when
-it explains nearly as many matches (planar or low-parallax scenes, as ORB-SLAM does). The
-result is accepted only with enough parallax and enough points triangulated in front of both
-cameras; otherwise `ok` is False and `reason` says why, so the caller can try a later frame.
+Both an essential matrix and a homography are fitted with RANSAC and scored by their truncated
+chi-square errors; the homography is chosen when its share of the two scores exceeds
+`homography_score_ratio` (planar or low-parallax scenes), as ORB-SLAM does. A pair that a rotation
+alone explains (the camera turned in place) is refused as `rotation_only`, before any structure is
+triangulated from it. The result is accepted only with enough parallax and enough points in front of
+both cameras; otherwise `ok` is False and `reason` says why, so the caller can try a later pair.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
+
+from papl_mapper.geometry.se3 import bearings, rotation_angle_deg, rotation_from_bearings
 
 log = logging.getLogger(__name__)
 
@@ -26,12 +30,18 @@ class InitConfig:
     """RANSAC inlier threshold in pixels (converted to normalised units with the focal length)."""
     min_inliers: int = 60
     """Fewest RANSAC inliers for a usable model."""
-    min_parallax_deg: float = 1.5
-    """Median parallax angle of triangulated points below which the baseline is too short."""
+    min_parallax_deg: float = 1.0
+    """Median parallax of the triangulated points below which the baseline is too short (ORB-SLAM's)."""
     min_triangulated: int = 50
     """Fewest points in front of both cameras with good parallax."""
-    homography_ratio: float = 0.85
-    """Prefer the homography when its inliers reach this fraction of the essential matrix's."""
+    strong_parallax_deg: float = 2.0
+    """Points with at least this parallax count as well triangulated when pairs are compared."""
+    homography_score_ratio: float = 0.45
+    """Prefer the homography when S_H / (S_H + S_E) of the truncated chi-square scores exceeds this."""
+    rotation_parallax_deg: float = 0.3
+    """A pair whose matches a pure rotation explains to this median angle has no parallax (turn in place)."""
+    ambiguity_deg: float = 2.0
+    """Two pose hypotheses are different when their rotations differ by more than this."""
     seed: int = 0
     """Seed for OpenCV's RANSAC."""
 
@@ -49,6 +59,10 @@ class InitResult:
     model: str = ""
     inliers: int = 0
     median_parallax_deg: float = 0.0
+    strong_points: int = 0
+    """Triangulated points with at least `strong_parallax_deg` of parallax: how good the pair is."""
+    rotation_only: bool = False
+    """The matches agree with a pure rotation (`R_21`): no baseline to triangulate from."""
 
 
 def triangulate_normalised(
@@ -133,6 +147,34 @@ def _homography_poses(H: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
+_CHI2_1DOF, _CHI2_2DOF = 3.841, 5.991  # 95% gates of one- and two-dimensional errors
+
+
+def homography_score(H: np.ndarray, x1: np.ndarray, x2: np.ndarray, sigma: float) -> float:
+    """ORB-SLAM's score of a homography: truncated chi-square of the transfer errors both ways."""
+    score = 0.0
+    for A, a, b in ((H, x1, x2), (np.linalg.inv(H), x2, x1)):
+        p = np.column_stack([a, np.ones(len(a))]) @ A.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            chi = np.sum((p[:, :2] / p[:, 2:3] - b) ** 2, axis=1) / sigma**2
+        chi = np.where(np.isfinite(chi), chi, np.inf)
+        score += float(np.sum(np.where(chi < _CHI2_2DOF, _CHI2_2DOF - chi, 0.0)))
+    return score
+
+
+def essential_score(E: np.ndarray, x1: np.ndarray, x2: np.ndarray, sigma: float) -> float:
+    """ORB-SLAM's score of an epipolar model: truncated chi-square of the point-to-epipolar-line
+    distances both ways, on the same scale as `homography_score`."""
+    h1 = np.column_stack([x1, np.ones(len(x1))])
+    h2 = np.column_stack([x2, np.ones(len(x2))])
+    score = 0.0
+    for lines, pts in ((h1 @ E.T, h2), (h2 @ E, h1)):
+        num = np.sum(lines * pts, axis=1) ** 2
+        chi = num / np.maximum(lines[:, 0] ** 2 + lines[:, 1] ** 2, 1e-300) / sigma**2
+        score += float(np.sum(np.where(chi < _CHI2_1DOF, _CHI2_2DOF - chi, 0.0)))
+    return score
+
+
 def initialise_two_view(
     x1: np.ndarray, x2: np.ndarray, focal_px: float, config: InitConfig | None = None
 ) -> InitResult:
@@ -151,33 +193,50 @@ def initialise_two_view(
     H, mask_h = cv2.findHomography(x1, x2, cv2.RANSAC, thr * np.sqrt(5.99 / 3.84))
     n_e = int(mask_e.sum()) if mask_e is not None else 0
     n_h = int(mask_h.sum()) if mask_h is not None else 0
-    candidates: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
-    if E is not None and n_e >= cfg.min_inliers:
-        E = E[:3]
-        R1, R2, t = cv2.decomposeEssentialMat(E)
-        me = mask_e.ravel().astype(bool)
-        for R in (R1, R2):
-            for s in (1, -1):
-                candidates.append(("essential", R, s * t.ravel(), me))
-    if H is not None and n_h >= cfg.min_inliers and n_h >= cfg.homography_ratio * n_e:
-        mh = mask_h.ravel().astype(bool)
-        candidates = [("homography", R, t, mh) for R, t in _homography_poses(H)] + candidates
-    if not candidates:
+    if max(n_e, n_h) < cfg.min_inliers:
         return InitResult(False, f"no model with {cfg.min_inliers} inliers (E: {n_e}, H: {n_h})")
+    inl = (mask_e if n_e >= n_h else mask_h).ravel().astype(bool)
+    R_rot, rot_err = rotation_from_bearings(bearings(x1[inl]), bearings(x2[inl]))
+    rot_median = float(np.median(rot_err))
+    if rot_median < cfg.rotation_parallax_deg:
+        return InitResult(
+            False,
+            f"a rotation explains the matches to {rot_median:.2f} deg: turned in place, no parallax",
+            R_21=R_rot,
+            inliers=int(inl.sum()),
+            rotation_only=True,
+        )
+    sigma = 1.0 / focal_px
+    s_e = essential_score(E[:3], x1, x2, sigma) if E is not None and n_e >= cfg.min_inliers else 0.0
+    s_h = homography_score(H, x1, x2, sigma) if H is not None and n_h >= cfg.min_inliers else 0.0
+    use_h = s_h / max(s_e + s_h, 1e-300) > cfg.homography_score_ratio
+    candidates: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
+    if use_h:
+        mh = mask_h.ravel().astype(bool)
+        candidates = [("homography", R, t, mh) for R, t in _homography_poses(H)]
+    elif s_e > 0:
+        R1, R2, t = cv2.decomposeEssentialMat(E[:3])
+        me = mask_e.ravel().astype(bool)
+        candidates = [("essential", R, s * t.ravel(), me) for R in (R1, R2) for s in (1, -1)]
+    if not candidates:
+        return InitResult(False, f"no usable model (E score {s_e:.0f}, H score {s_h:.0f})")
     scored = [(_check_pose(R, t, x1, x2, m, cfg), name, R, t) for name, R, t, m in candidates]
     scored.sort(key=lambda s: -s[0][0])
     (n_good, good, X, median), name, R, t = scored[0]
-    # Ambiguity: a second hypothesis explaining almost as many points means the geometry is weak.
-    if len(scored) > 1 and scored[1][0][0] > 0.7 * n_good and not np.allclose(scored[1][2], R, atol=1e-3):
-        return InitResult(False, "two pose hypotheses explain the matches equally well (low parallax)")
+    # Ambiguity: a different hypothesis explaining almost as many points means the geometry is weak.
+    for (n_other, *_), _, R_other, _ in scored[1:]:
+        if n_other > 0.7 * n_good and rotation_angle_deg(R_other, R) > cfg.ambiguity_deg:
+            return InitResult(False, "two pose hypotheses explain the matches equally well (low parallax)")
     if name == "essential":
         # Inliers gated around the minimal-sample model are biased towards it: refine, re-gate, repeat.
         for _ in range(3):
             R, t = refine_relative_pose(R, t, x1[good], x2[good], thr)
             gate = np.abs(sampson_errors(R, t, x1, x2)) < thr
             n_good, good, X, median = _check_pose(R, t, x1, x2, gate, cfg)
+    par = parallax_deg(R, t, X[good]) if good.any() else np.zeros(0)
     result = InitResult(
         ok=False,
+        strong_points=int((par >= cfg.strong_parallax_deg).sum()),
         reason="",
         R_21=R,
         t_21=t,
