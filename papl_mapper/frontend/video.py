@@ -1,13 +1,22 @@
 """Decoding of recordings: video files through OpenCV's FFmpeg backend, and image folders.
 
-`open_recording` checks the input once (it decodes the first frame) and returns a `Recording`
+`open_recording` checks the input once (it decodes the first two frames) and returns a `Recording`
 that can be iterated any number of times; each pass decodes in a background thread into a
-bounded queue so decoding overlaps processing. A truncated or partly corrupt stream yields
-what is readable; where it stopped is logged and kept on the Recording (`stopped_early`).
+bounded queue so decoding overlaps processing.
+
+Bad input is handled per frame. A frame that does not decode (an image file that is corrupt,
+truncated, empty or of another size than the folder's images; a video frame whose data is
+damaged while later frames decode) is skipped, and the pass goes on: the frames that decode
+keep their own index and timestamp (a skipped frame leaves a gap, it shifts nothing), and the
+skipped ones are listed in `Recording.bad_frames` with a one-line reason each. A video whose
+stream ends before its announced length yields what is readable; where it stopped is logged
+and kept on the Recording (`stopped_early`, `stop_message`). `open_recording` raises
+InputError when no frame, or only one frame beside bad ones, decodes.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 import queue
 import re
@@ -25,6 +34,8 @@ log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 _END = object()
+_MAX_BAD_RUN = 1000  # failed grabs in a row after which a video stream counts as ended (length unknown)
+_REFERENCE_IMAGES = 3  # decodable images of a folder whose most common size is the folder's size
 
 
 @dataclass
@@ -36,6 +47,42 @@ class Frame:
     image: np.ndarray  # (H, W, 3) uint8 BGR or (H, W) uint8 gray
 
 
+@dataclass(frozen=True)
+class BadFrame:
+    """A frame of the selection that could not be decoded and was skipped.
+
+    `index` is the frame's index in the source (the index it would have had as a Frame),
+    `name` the image file's name (folders) or "frame <index> at <t> s" (videos), `timestamp_s`
+    its time (from timestamps.txt / fps for folders; estimated from the previous frame for a
+    video frame, whose data gave none), `reason` one line such as "truncated PNG".
+    `str(bad)` is "<name> (<reason>)".
+    """
+
+    index: int
+    name: str
+    timestamp_s: float
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.reason})"
+
+
+def describe_bad_frames(bad: list[BadFrame], limit: int = 5) -> str:
+    """One line: '3 frames could not be decoded and were skipped: a.png (empty file), ...'.
+
+    At most `limit` frames are named, then "and <k> more"; "" when `bad` is empty.
+    """
+    if not bad:
+        return ""
+    verb = "frame could not be decoded and was" if len(bad) == 1 else "frames could not be decoded and were"
+    return f"{len(bad)} {verb} skipped: {_list_bad(bad, limit)}"
+
+
+def _list_bad(bad: list[BadFrame], limit: int) -> str:
+    more = f" and {len(bad) - limit} more" if len(bad) > limit else ""
+    return ", ".join(str(b) for b in bad[:limit]) + more
+
+
 @dataclass
 class Recording:
     """A video file or image folder opened for decoding, with the frame selection applied.
@@ -43,6 +90,12 @@ class Recording:
     `width`/`height` are the size of the yielded images (after `max_size`); `scale_xy` maps
     source pixels to them (use `papl_mapper.frontend.camera.scale_camera` on a source camera).
     `stopped_early`/`stop_message` are set by a pass that ended before the stream's announced end.
+
+    `bad_frames: list[BadFrame]` lists the frames of the selection (range and step applied)
+    that did not decode and were skipped, in source order; each pass starts it afresh and
+    appends as it goes, so after a complete pass it is that pass's whole list (empty right after
+    `open_recording`). `bad_frames_message()` is the one-line summary for a log or report.
+    A video's stream ending early is not a bad frame: that is `stopped_early`.
     """
 
     path: Path
@@ -64,6 +117,7 @@ class Recording:
     stopped_at_frame: int | None = None  # source index of the last frame decoded in a pass that ended early
     stop_message: str = ""
     decoded_frames: int = 0  # frames yielded by the last complete pass
+    bad_frames: list[BadFrame] = field(default_factory=list)  # skipped frames of the current/last pass
 
     @property
     def scale_xy(self) -> tuple[float, float]:
@@ -72,6 +126,10 @@ class Recording:
     @property
     def size(self) -> tuple[int, int]:
         return self.width, self.height
+
+    def bad_frames_message(self, limit: int = 5) -> str:
+        """One line naming the skipped frames ("" when none): see `describe_bad_frames`."""
+        return describe_bad_frames(self.bad_frames, limit)
 
     def expected_frames(self) -> int:
         """Frames a pass will yield if the stream is intact (0 when the container does not say)."""
@@ -155,8 +213,13 @@ class Recording:
             return 1
         return 0
 
+    def _skip(self, index: int, name: str, t: float, reason: str) -> None:
+        self.bad_frames.append(BadFrame(index, name, t, reason))
+        log.debug("%s: skipped %s (%s)", self.path, name, reason)
+
     def _decode(self) -> Iterator[Frame]:
         self.stopped_early, self.stopped_at_frame, self.stop_message = False, None, ""
+        self.bad_frames = []
         source = self._decode_video() if self.kind == "video" else self._decode_images()
         n = 0
         for frame in source:
@@ -169,14 +232,39 @@ class Recording:
         if not cap.isOpened():
             raise InputError(f"{self.path}: the video could not be reopened for decoding")
         try:
-            index = -1
-            kept = 0
+            index = -1  # source index of the latest frame, grabbed or failed
+            last_grab = -1  # source index of the latest frame grabbed
+            last_t = 0.0
             last_ok = None
+            kept = 0
+            failed = 0  # failed grabs in a row
+            pending: list[BadFrame] = []  # failed frames that count as bad once a later frame grabs
             while True:
                 if not cap.grab():
-                    break
+                    # a damaged packet fails one grab and the next frame grabs again; at the end of
+                    # the stream every grab fails (cheaply), so try as long as frames may remain
+                    failed += 1
+                    remaining = self.frame_count - (last_grab + 1)
+                    if failed > (max(30, remaining) if self.frame_count > 0 else _MAX_BAD_RUN):
+                        break
+                    index += 1
+                    t = last_t + (index - last_grab) / self.fps if last_grab >= 0 else index / self.fps
+                    where = self._in_range(t)
+                    if where > 0:
+                        break
+                    if where == 0:
+                        if kept % self.step == 0:
+                            pending.append(
+                                BadFrame(index, f"frame {index} at {t:.3f} s", t, "its data does not decode")
+                            )
+                        kept += 1
+                    continue
                 index += 1
-                t = _video_time(cap, index, self.fps)
+                last_grab, failed = index, 0
+                for bad in pending:
+                    self._skip(bad.index, bad.name, bad.timestamp_s, bad.reason)
+                pending.clear()
+                t = last_t = _video_time(cap, index, self.fps)
                 where = self._in_range(t)
                 if where > 0:
                     return
@@ -187,17 +275,27 @@ class Recording:
                     continue
                 kept += 1
                 ok, image = cap.retrieve()
+                name = f"frame {index} at {t:.3f} s"
                 if not ok or image is None:
-                    self._mark_stop(index - 1, f"frame {index} could not be decoded")
-                    return
+                    self._skip(index, name, t, "grabbed but could not be converted to an image")
+                    continue
+                if image.shape[:2] != (self.source_height, self.source_width):
+                    self._skip(
+                        index,
+                        name,
+                        t,
+                        f"{image.shape[1]}x{image.shape[0]}, not the stream's "
+                        f"{self.source_width}x{self.source_height}",
+                    )
+                    continue
                 last_ok = index
                 yield Frame(index, t, self._prepare(image))
             announced = self.frame_count
             # containers may count one frame more than FFmpeg delivers; more missing is a truncation
-            if announced > 0 and index + 1 < announced - 1 and self.end_s is None:
+            if announced > 0 and last_grab + 1 < announced - 1 and self.end_s is None:
                 self._mark_stop(
-                    last_ok if last_ok is not None else index,
-                    f"the stream ended after {index + 1} of {announced} announced frames "
+                    last_ok if last_ok is not None else last_grab,
+                    f"the stream ended after {last_grab + 1} of {announced} announced frames "
                     "(truncated or corrupt)",
                 )
         finally:
@@ -205,6 +303,7 @@ class Recording:
 
     def _decode_images(self) -> Iterator[Frame]:
         kept = 0
+        flags = cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR
         for index, path in enumerate(self.image_files):
             t = float(self.image_timestamps[index]) if self.image_timestamps is not None else index / self.fps
             where = self._in_range(t)
@@ -216,15 +315,13 @@ class Recording:
                 kept += 1
                 continue
             kept += 1
-            image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR)
+            image, reason = _read_image(path, flags)
+            if image is not None and image.shape[:2] != (self.source_height, self.source_width):
+                size = f"{self.source_width}x{self.source_height}"
+                image, reason = None, f"{image.shape[1]}x{image.shape[0]}, not the folder's {size}"
             if image is None:
-                self._mark_stop(index - 1, f"{path.name} could not be read")
-                return
-            if image.shape[:2] != (self.source_height, self.source_width):
-                raise InputError(
-                    f"{path}: {image.shape[1]}x{image.shape[0]} differs from the folder's first image "
-                    f"({self.source_width}x{self.source_height}); all images must have one size"
-                )
+                self._skip(index, path.name, t, reason)
+                continue
             yield Frame(index, t, self._prepare(image))
 
     def _mark_stop(self, last_index: int, message: str) -> None:
@@ -232,6 +329,85 @@ class Recording:
         self.stopped_at_frame = last_index
         self.stop_message = message
         log.warning("%s: %s; kept the frames up to index %d", self.path, message, last_index)
+
+
+def _read_image(path: Path, flags: int) -> tuple[np.ndarray | None, str]:
+    """The decoded image and "", or None and a one-line reason why it does not decode."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        return None, f"unreadable: {exc.strerror or exc}"
+    if not data:
+        return None, "empty file"
+    fmt = _image_format(data)
+    if fmt == "JPEG" and not _jpeg_complete(data):
+        return None, "truncated JPEG"  # some libjpeg builds fill the missing part with grey
+    try:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    except cv2.error:
+        image = None
+    if image is not None and image.size:
+        return image, ""
+    if fmt is None:
+        kind = path.suffix.lstrip(".").upper() or "an image"
+        return None, f"not a {kind} file (unrecognised content)"
+    if fmt == "PNG" and not _png_complete(data):
+        return None, "truncated PNG"
+    return None, f"corrupt or truncated {fmt}"
+
+
+def _image_format(data: bytes) -> str | None:
+    """The image format the bytes start like, or None."""
+    if data.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "PNG"
+    if data.startswith(b"\xff\xd8\xff"):
+        return "JPEG"
+    if data.startswith((b"II*\x00", b"MM\x00*")):
+        return "TIFF"
+    if data.startswith(b"BM"):
+        return "BMP"
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        return "WebP"
+    if len(data) > 2 and data[0:1] == b"P" and data[1:2] in b"123456" and data[2:3].isspace():
+        return "PNM"
+    return None
+
+
+def _png_complete(data: bytes) -> bool:
+    """True when the PNG's chunks run whole up to IEND."""
+    i = 8
+    while i + 12 <= len(data):
+        end = i + 12 + int.from_bytes(data[i : i + 4], "big")
+        if end > len(data):
+            return False
+        if data[i + 4 : i + 8] == b"IEND":
+            return True
+        i = end
+    return False
+
+
+def _jpeg_complete(data: bytes) -> bool:
+    """False when the JPEG ends before its end-of-image marker (segments are walked to the first
+    scan of the main image, so an embedded thumbnail's marker does not count). Anything the walk
+    does not understand is left to the decoder (True)."""
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return True
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == 0xD9:
+            return True
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:  # markers without a length
+            i += 2
+            continue
+        length = int.from_bytes(data[i + 2 : i + 4], "big")
+        if marker == 0xDA:  # start of scan: the entropy-coded data cannot hold FF D9
+            return data.find(b"\xff\xd9", i + 2 + length) >= 0
+        i += 2 + length
+    return False
 
 
 def _video_time(cap: cv2.VideoCapture, index: int, fps: float) -> float:
@@ -306,7 +482,9 @@ def open_recording(
     step keeps every step-th frame of the time range [start_s, end_s]; max_size bounds the
     longer image side (downscaled with INTER_AREA). For image folders, `fps` (default 30)
     gives timestamps unless a timestamps file is given or `timestamps.txt` lies in the folder.
-    Raises InputError for a missing path, a file that is not a video, or no decodable frame.
+    Frames that do not decode are skipped during decoding (`Recording.bad_frames`).
+    Raises InputError for a missing path, a file that is not a video, no decodable frame, or
+    bad frames leaving fewer than 2 that decode.
     """
     path = Path(path)
     if step < 1:
@@ -322,8 +500,14 @@ def open_recording(
         rec = _open_folder(path, fps, timestamps, max_size, common)
     else:
         rec = _open_video(path, max_size, common)
-    first = next(iter(rec.frames()), None)
-    if first is None:
+    good = list(itertools.islice(rec.frames(), 2))  # scans the whole selection when < 2 decode
+    if rec.bad_frames and len(good) < 2:
+        n, listed = len(good) + len(rec.bad_frames), _list_bad(rec.bad_frames, 3)
+        if good:
+            raise InputError(f"{path}: only 1 of the {n} selected frames decodes (2 are needed): {listed}")
+        raise InputError(f"{path}: none of the {n} selected frames decodes: {listed}")
+    rec.bad_frames = []
+    if not good:
         where = "" if start_s is None and end_s is None else f" in the time range {start_s}..{end_s} s"
         raise InputError(f"{path}: no decodable frame{where}; check the file and the time range")
     log.info(
@@ -347,7 +531,12 @@ def _open_video(path: Path, max_size: int | None, common: dict) -> Recording:
     try:
         if not cap.isOpened():
             raise InputError(f"{path}: not a video FFmpeg can read (unknown format, or corrupt header)")
+        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         ok, image = cap.read()
+        for _ in range(max(30, count) if count > 0 else _MAX_BAD_RUN):  # damaged first frames
+            if ok and image is not None:
+                break
+            ok, image = cap.read()
         if not ok or image is None:
             raise InputError(f"{path}: no decodable frame; the stream is empty or corrupt")
         h, w = image.shape[:2]
@@ -355,7 +544,6 @@ def _open_video(path: Path, max_size: int | None, common: dict) -> Recording:
         if not np.isfinite(fps) or fps <= 0 or fps > 1000:
             log.warning("%s: the container gives no frame rate; assuming 30 fps", path)
             fps = 30.0
-        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
     finally:
         cap.release()
     width, height = _fit_size(w, h, max_size)
@@ -378,10 +566,7 @@ def _open_folder(
             raise InputError(f"{ts_path}: timestamps must increase with the sorted image names")
     elif timestamps is not None:
         raise InputError(f"{ts_path}: timestamps file not found")
-    first = cv2.imread(str(files[0]), cv2.IMREAD_UNCHANGED)
-    if first is None:
-        raise InputError(f"{files[0]}: not an image OpenCV can read")
-    h, w = first.shape[:2]
+    w, h = _folder_size(path, files, cv2.IMREAD_GRAYSCALE if common["gray"] else cv2.IMREAD_COLOR)
     if fps is None:
         fps = float(1.0 / np.median(np.diff(stamps))) if stamps is not None and len(stamps) > 1 else 30.0
     width, height = _fit_size(w, h, max_size)
@@ -389,3 +574,21 @@ def _open_folder(
     return Recording(
         path, "images", w, h, width, height, fps, n, image_files=files, image_timestamps=stamps, **common
     )
+
+
+def _folder_size(path: Path, files: list[Path], flags: int) -> tuple[int, int]:
+    """(width, height) most common among the folder's first decodable images (the first on a tie),
+    so one odd or broken image at the start does not set the size; InputError if none decodes."""
+    sizes: list[tuple[int, int]] = []
+    bad: list[BadFrame] = []
+    for index, file in enumerate(files):
+        image, reason = _read_image(file, flags)
+        if image is None:
+            bad.append(BadFrame(index, file.name, float("nan"), reason))
+            continue
+        sizes.append((image.shape[1], image.shape[0]))
+        if len(sizes) == _REFERENCE_IMAGES:
+            break
+    if not sizes:
+        raise InputError(f"{path}: none of its {len(files)} images decodes: {_list_bad(bad, 3)}")
+    return max(sizes, key=lambda wh: (sizes.count(wh), -sizes.index(wh)))
