@@ -18,6 +18,18 @@ class InputError(PaplError):
     exit_code = 2
 
 
+class UnmappableError(InputError):
+    """The recording holds no geometry to map (no parallax, no texture, too few frames).
+
+    `T_cw_frames` holds the poses that could still be found (frame row -> T_cw; for a camera that
+    only turns in place, its orientations), which the pipeline writes before reporting the error.
+    """
+
+    def __init__(self, message: str, T_cw_frames: dict | None = None):
+        super().__init__(message)
+        self.T_cw_frames = T_cw_frames or {}
+
+
 class MapFormatError(InputError):
     """A map file is corrupt, truncated, of another version, or holds invalid values."""
 

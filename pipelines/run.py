@@ -32,10 +32,12 @@ from papl_mapper.atomic import atomic_path
 from papl_mapper.backend import global_ba
 from papl_mapper.backend.calibration import check_focal
 from papl_mapper.config import config_to_dict, dump_toml
+from papl_mapper.errors import UnmappableError
 from papl_mapper.eval.trajectory import Trajectory, write_tum
 from papl_mapper.frontend import FrontendStats, process
 from papl_mapper.frontend.camera import camera_for_recording
 from papl_mapper.frontend.video import open_recording
+from papl_mapper.geometry.se3 import invert
 from papl_mapper.geometry.triangulation import observation_planes
 from papl_mapper.map import Axes, Map, json_default
 from papl_mapper.mapping.assemble import (
@@ -52,6 +54,7 @@ from papl_mapper.mapping.culling import CullStats, cull_keyframes
 from papl_mapper.mapping.incremental import Registration, register_keyframes
 from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
 from papl_mapper.mapping.pose_refine import FrameRefiner
+from papl_mapper.mapping.rotation_only import fill_rotation_only
 from papl_mapper.mapping.structure import find_structure, line_weights
 from papl_mapper.mapping.tracking import track_pnp
 from papl_mapper.mapping.windowed import WindowedRefiner
@@ -171,7 +174,11 @@ def run(
                 store.save("frontend", functools.partial(ckpt.write_tracks, tracks=tracks), frontend_stats)
         else:
             tracks, frontend_stats = loaded
-        m, stats = map_tracks(tracks, cfg, timer, progress, store)
+        try:
+            m, stats = map_tracks(tracks, cfg, timer, progress, store)
+        except UnmappableError as exc:
+            _write_unmappable(out, tracks, cfg, exc, {"path": str(recording), "sha256": sha}, frontend_stats)
+            raise
         if cfg.focal.enabled:
             with timer.stage("focal_check"):
                 focal = check_focal(m, cfg.focal)
@@ -473,7 +480,10 @@ def frame_poses(tracks: Tracks, m: Map, cfg: RunConfig) -> dict[int, np.ndarray]
             T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])
             T_wc = np.linalg.inv(T_cw)
         last = out[f] = T_wc
-    return out
+    # frames that turn in place where nothing is mapped (a pan at the start) keep an orientation
+    turned = fill_rotation_only(tracks, {f: invert(T) for f, T in out.items()}, cfg.mapping.rotation_only)
+    out.update({f: invert(T) for f, T in turned.items()})
+    return dict(sorted(out.items()))
 
 
 def frame_trajectory(tracks: Tracks, m: Map, cfg: RunConfig) -> Trajectory:
@@ -505,6 +515,35 @@ def _write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary:
         _atomic_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
         write_tum(tmp["keyframes.tum"], Trajectory(m.keyframes.timestamp, m.keyframes.T_wc, "keyframes"))
         write_tum(tmp["trajectory.tum"], traj)
+
+
+def _write_unmappable(
+    out: Path,
+    tracks: Tracks,
+    cfg: RunConfig,
+    exc: UnmappableError,
+    recording: dict[str, Any],
+    frontend_stats: dict[str, Any],
+) -> None:
+    """What a recording that cannot be mapped still gives: the poses found (orientations of a camera
+    turning in place), the config and a summary saying why; no map, no structure."""
+    frames = np.array(sorted(exc.T_cw_frames), np.int64)
+    T_wc = np.array([invert(exc.T_cw_frames[int(f)]) for f in frames]).reshape(-1, 4, 4)
+    summary = {
+        "status": "unmapped",
+        "error": str(exc),
+        "recording": {**recording, "frames": int(len(tracks))},
+        "frames_posed": int(len(frames)),
+        "frontend": frontend_stats,
+    }
+    names = ("trajectory.tum", "config.toml", "summary.json")
+    with contextlib.ExitStack() as stack:
+        tmp = {name: stack.enter_context(atomic_path(out / name)) for name in names}
+        write_tum(
+            tmp["trajectory.tum"], Trajectory(tracks.timestamp[frames].astype(np.float64), T_wc, "trajectory")
+        )
+        _atomic_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
+        _atomic_text(tmp["summary.json"], json.dumps(summary, indent=1, default=json_default))
 
 
 def _atomic_text(path: Path, text: str) -> None:

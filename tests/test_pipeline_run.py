@@ -97,8 +97,14 @@ def test_static_recording_is_refused(tmp_path, capsys):
     vw.release()
     assert main(["run", str(path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
-    assert "could not initialise" in err and "parallax" in err
+    errors = [line for line in err.splitlines() if ": error: " in line]
+    assert len(errors) == 1 and "no motion" in errors[0]
     assert not (tmp_path / "o" / "map.papl").exists()
+    # what could be posed is still written: 30 frames standing at the origin, and why in the summary
+    rows = np.loadtxt(tmp_path / "o" / "trajectory.tum")
+    assert rows.shape == (30, 8) and np.allclose(rows[:, 1:4], 0.0)
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["status"] == "unmapped" and "no motion" in s["error"]
 
 
 def test_guessed_focal_length_is_flagged(tmp_path):

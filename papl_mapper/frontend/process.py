@@ -132,6 +132,7 @@ class FrontendStats:
     """CPU seconds per step of the thread running it (OpenCV's own worker threads not included)."""
     frames: int = 0
     skipped: int = 0
+    bad_frames: list[str] = field(default_factory=list)  # frames that did not decode: "name (reason)"
     breaks: int = 0  # frames where KLT lost most tracks of the previous frame (a jump)
     feature_tracks: int = 0  # tracks chained from ORB matches across weak KLT links
     feature_pairs_verified: int = 0
@@ -424,6 +425,9 @@ class _Run:
         rec, stats = self.recording, self.stats
         if rec.stopped_early:
             log.warning("%s: decoding stopped early: %s", rec.path, rec.stop_message)
+        if rec.bad_frames:
+            log.warning("%s: %s", rec.path, rec.bad_frames_message())
+            stats.bad_frames = [str(b) for b in rec.bad_frames]
         if self.skipped:
             log.warning("%s: skipped %d textureless frames (of %d)", rec.path, len(self.skipped), self.done)
         if not self.frame_index:

@@ -13,14 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from papl_mapper.errors import InputError, PaplError
+from papl_mapper.errors import PaplError, UnmappableError
 from papl_mapper.eval.trajectory import Sim3, umeyama
 from papl_mapper.frontend.descriptors import match_descriptors
-from papl_mapper.geometry.se3 import invert, similarity_T_cw
+from papl_mapper.geometry.se3 import invert, rotation_angle_deg, similarity_T_cw
 from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions
 from papl_mapper.mapping.revisit import Revisit, RevisitConfig, TrackIndex, close_loop, find_revisit
+from papl_mapper.mapping.rotation_only import RotationOnlyConfig, rotation_only_recording
 from papl_mapper.mapping.tracking import PnPConfig, PnPResult, track_pnp
 from papl_mapper.tracks import PointRows, Tracks
 
@@ -37,6 +38,8 @@ class IncrementalConfig:
     """PnP tracking thresholds."""
     revisit: RevisitConfig = field(default_factory=RevisitConfig)
     """Revisit detection and loop closure."""
+    rotation_only: RotationOnlyConfig = field(default_factory=RotationOnlyConfig)
+    """Orientations of frames that turn in place where PnP cannot pose them (no parallax)."""
     init_search_keyframes: int = 25
     """How many keyframes after the first one to try as the initialisation partner."""
     min_parallax_deg: float = 2.0
@@ -226,7 +229,24 @@ def register_keyframes(
         segments.append(reg)
         start = end + 1
     if not segments:
-        raise InputError(
+        turned = rotation_only_recording(tracks, cfg.rotation_only) if cfg.rotation_only.enabled else None
+        if (
+            turned is not None
+            and max(rotation_angle_deg(T[:3, :3], np.eye(3)) for T in turned.values()) < 1.0
+        ):
+            raise UnmappableError(
+                f"no motion: the camera stands still in all {len(tracks)} frames, nothing to map; "
+                "record while walking through the place",
+                T_cw_frames=turned,
+            )
+        if turned is not None:
+            raise UnmappableError(
+                f"rotation only: the camera turns in place in all {len(tracks)} frames, so there is no "
+                "parallax to map from; orientations are written to trajectory.tum, no structure; "
+                "record while walking, not only panning",
+                T_cw_frames=turned,
+            )
+        raise UnmappableError(
             f"could not initialise from {len(keyframes)} keyframes: too little parallax or too few "
             "tracked points; try a recording with sideways or forward motion, or a lower --step"
         )
