@@ -288,8 +288,46 @@ def camera_for_recording(
     cam = read_camera_file(path)
     original = (cam.width, cam.height)
     fitted = fit_camera(cam, width, height, str(path))
+    check_distortion(fitted, str(path))
     scaled = original if original != (width, height) and cam.width > 0 else None
     return CameraSource(fitted, str(path), guessed=False, scaled_from=scaled)
+
+
+MAX_CORNER_STRETCH = 2.5
+"""Largest factor by which undistortion may move the image corners away from or towards the centre:
+wide-angle lenses reach about 1.5 within the pinhole-plus-radial model; beyond, it is a wrong file."""
+
+
+def check_distortion(camera: Camera, name: str) -> None:
+    """InputError when the radial distortion folds the image (not monotonic out to its corners) or
+    stretches its corners by more than `MAX_CORNER_STRETCH`: coefficients from another model or order."""
+    d = np.zeros(5)
+    dist = np.asarray(camera.distortion, np.float64).ravel()[:5]
+    d[: len(dist)] = dist
+    k1, k2, k3 = d[0], d[1], d[4]
+    if not (k1 or k2 or k3) or camera.width <= 0:
+        return
+    corners = np.array(
+        [[0, 0], [camera.width - 1, 0], [0, camera.height - 1], [camera.width - 1, camera.height - 1]]
+    )
+    rc = float(np.max(np.linalg.norm((corners - [camera.cx, camera.cy]) / [camera.fx, camera.fy], axis=1)))
+    r = np.linspace(0.0, MAX_CORNER_STRETCH * rc, 4001)
+    rd = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
+    rising = np.diff(rd) > 0
+    branch = len(rising) if rising.all() else int(np.argmin(rising))  # monotonic part from the centre
+    if branch == 0 or rd[branch] < rc:
+        raise InputError(
+            f"{name}: implausible distortion (k1 {k1:g}, k2 {k2:g}, k3 {k3:g}): it folds the image back "
+            f"before its corners, or moves them more than {MAX_CORNER_STRETCH:g} times further out; check "
+            "the coefficients and their order (k1 k2 p1 p2 k3)"
+        )
+    ru = float(np.interp(rc, rd[: branch + 1], r[: branch + 1]))
+    if ru < rc / MAX_CORNER_STRETCH:
+        raise InputError(
+            f"{name}: implausible distortion (k1 {k1:g}, k2 {k2:g}, k3 {k3:g}): the image corners undistort "
+            f"to {ru / rc:.3f} times their radius, squeezing the view; check the coefficients and their "
+            "order (k1 k2 p1 p2 k3)"
+        )
 
 
 class Undistorter:
