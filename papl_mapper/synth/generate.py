@@ -8,6 +8,22 @@ The layout (other stages read it):
     DIR/gt/axes.json         directions, vertical_index    DIR/gt/map.papl            the GT as a Map
     DIR/scene.json           scene, config, seed, path length, the command that regenerates DIR
 
+Frames are numbered in recording order: frame k of video.mp4 is frames/NNNNNN.png with NNNNNN = k,
+line k of timestamps.txt and of gt/trajectory.tum. The adversarial variants (VARIANTS) keep this:
+
+- rotation-start / rotation-only (`motion`): the camera pans in place for `pan_seconds` first, then
+  walks; or it only pans, back and forth, and never translates.
+- dropped-frames (`drop_fraction`): frames of the walk are missing (seeded, some in runs of 2-4);
+  the others keep their true times, so timestamps.txt has gaps, and video.mp4 holds only the kept
+  frames with those times as presentation times (a variable-frame-rate MP4: frame times read
+  through OpenCV's CAP_PROP_POS_MSEC are the true ones). scene.json lists the dropped walk frames.
+- photo-set (`photo_hz`): frames of the walk at `photo_hz` written as DIR/frames/ only (no video).
+- low-texture (`low_texture`): blank walls and ceilings, faint floors; same geometry and GT.
+
+Whenever the recorded frames are not every frame of the walk (dropped-frames, photo-set), the
+frames folder holds a copy of timestamps.txt, so `papl-map run DIR/frames` reads the true times.
+Motion blur, exposure and noise of a recorded frame are those of the same frame of the full walk.
+
 Every file is written under a temporary name and renamed, so an interrupted run never leaves a
 half-written file under a final name.
 """
@@ -31,16 +47,31 @@ import numpy as np
 from papl_mapper import __version__
 from papl_mapper.errors import BackendUnavailableError, InputError
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
-from papl_mapper.synth.path import walkthrough
+from papl_mapper.synth.mp4 import retime_mp4
+from papl_mapper.synth.path import look_around, pan_then_walk, walkthrough
 from papl_mapper.synth.project import project, visible_points, visible_segments
 from papl_mapper.synth.render import Renderer
-from papl_mapper.synth.scenes import SCENES, Scene, make_scene
+from papl_mapper.synth.scenes import SCENES, Scene, low_texture, make_scene
 
 KEYFRAME_EVERY = 10  # GT map keyframes: every 10th frame
 MAX_GT_POINTS = 2000
 WHITE_LEVEL = 230.0  # 8-bit value of a white surface facing the light; lights saturate
 
 ProgressCallback = Callable[[int, int, str], None]
+
+MOTIONS = ("walk", "rotation-start", "rotation-only")
+#: Named adversarial variants: the SynthConfig fields each one sets. They combine, except the two
+#: motions with each other and dropped-frames with photo-set.
+VARIANTS: dict[str, dict[str, object]] = {
+    "rotation-start": {"motion": "rotation-start"},
+    "rotation-only": {"motion": "rotation-only"},
+    "dropped-frames": {"drop_fraction": 0.1},
+    "photo-set": {"photo_hz": 1.0},
+    "low-texture": {"low_texture": True},
+}
+#: Fields of the variants: left out of scene.json and the GT map's metadata while all are default,
+#: so a plain walkthrough is written exactly as before they existed.
+VARIANT_FIELDS = ("motion", "pan_seconds", "pan_deg", "drop_fraction", "photo_hz", "low_texture")
 
 
 @dataclass
@@ -75,10 +106,53 @@ class SynthConfig:
     """Walking speed in metres per second."""
     msaa: bool = False
     """With supersampling, look textures up once per pixel (edges still anti-aliased): ~30% faster."""
+    motion: str = "walk"
+    """walk; rotation-start: stand and pan in place for pan_seconds, then walk; rotation-only: stand
+    at the start and pan back and forth the whole time (pure rotation, no translation)."""
+    pan_seconds: float = 2.5
+    """rotation-start: length of the pan before walking; rotation-only: time of one sweep."""
+    pan_deg: float = 45.0
+    """Angle of the pan (rotation-start) or of each sweep (rotation-only), in degrees."""
+    drop_fraction: float = 0.0
+    """Fraction of the walk's frames left out (seeded, some in runs of 2-4); 0 = none."""
+    photo_hz: float = 0.0
+    """Photo set: keep the walk's frames at this rate, written as frames/ without a video; 0 = video."""
+    low_texture: bool = False
+    """Blank walls and ceilings and faint floors (few points; structural edges still visible)."""
 
     @property
     def n_frames(self) -> int:
+        """Frames of the walk at `fps` (the recording holds all of them unless frames are dropped or
+        it is a photo set: see frame_indices)."""
         return int(round(self.seconds * self.fps))
+
+    @property
+    def variants(self) -> list[str]:
+        """Names of the adversarial variants this config uses (see VARIANTS), in that order."""
+        out = [self.motion] if self.motion != "walk" else []
+        out += ["dropped-frames"] if self.drop_fraction > 0 else []
+        out += ["photo-set"] if self.photo_hz > 0 else []
+        out += ["low-texture"] if self.low_texture else []
+        return out
+
+    def frame_indices(self) -> np.ndarray:
+        """(K,) int64 indices into the walk's n_frames of the frames the recording holds, increasing."""
+        n = self.n_frames
+        if self.photo_hz > 0:
+            step = self.fps / self.photo_hz
+            idx = np.round(np.arange(math.ceil(n / step)) * step).astype(np.int64)
+            return np.unique(idx[idx < n])
+        if self.drop_fraction > 0:
+            return np.flatnonzero(~drop_pattern(n, self.drop_fraction, self.seed)).astype(np.int64)
+        return np.arange(n, dtype=np.int64)
+
+    def to_dict(self) -> dict:
+        """The fields as a dict; the variant fields only when one of them is not its default."""
+        d = dataclasses.asdict(self)
+        if all(d[k] == _DEFAULTS[k] for k in VARIANT_FIELDS):
+            for k in VARIANT_FIELDS:
+                del d[k]
+        return d
 
     def validate(self) -> None:
         """InputError naming the first impossible option."""
@@ -102,6 +176,29 @@ class SynthConfig:
             raise InputError(f"supersample {self.supersample} must be 1, 2, 3 or 4")
         if not 0 < self.speed <= 5:
             raise InputError(f"walking speed {self.speed} m/s is outside (0, 5]")
+        self._validate_variants()
+
+    def _validate_variants(self) -> None:
+        if self.motion not in MOTIONS:
+            raise InputError(f"unknown motion {self.motion!r}; known motions: {', '.join(MOTIONS)}")
+        if not (self.pan_seconds > 0 and math.isfinite(self.pan_seconds)):
+            raise InputError(f"pan time {self.pan_seconds} s is impossible; give a positive --pan-seconds")
+        if not 0 < self.pan_deg <= 360:
+            raise InputError(f"pan angle {self.pan_deg} deg is outside (0, 360]")
+        n_pan = int(round(self.pan_seconds * self.fps))
+        if self.motion == "rotation-start" and not 1 <= n_pan < self.n_frames:
+            raise InputError(
+                f"a {self.pan_seconds:g} s pan is {n_pan} of the {self.n_frames} frames; rotation-start "
+                "needs at least one frame of pan and one of walking (--pan-seconds < --seconds)"
+            )
+        if not 0 <= self.drop_fraction <= 0.5:
+            raise InputError(f"drop fraction {self.drop_fraction} is outside 0..0.5")
+        if self.drop_fraction > 0 and self.n_frames < 3:
+            raise InputError(f"{self.n_frames} frames are too few to drop any; give a longer --seconds")
+        if not (0 <= self.photo_hz <= self.fps and math.isfinite(self.photo_hz)):
+            raise InputError(f"photo rate {self.photo_hz} Hz is outside 0..{self.fps:g} (the --fps)")
+        if self.photo_hz > 0 and self.drop_fraction > 0:
+            raise InputError("dropped-frames and photo-set do not combine; choose one of them")
 
     def camera(self) -> Camera:
         """Pinhole camera, zero distortion, principal point at the image centre."""
@@ -120,7 +217,78 @@ class SynthConfig:
             args.append("--msaa")
         if self.write_frames:
             args.append("--frames")
+        if self.variants:
+            args += ["--variant", ",".join(self.variants)]
+        for name, flag in (("pan_seconds", "--pan-seconds"), ("pan_deg", "--pan-deg")):
+            if getattr(self, name) != _DEFAULTS[name]:
+                args += [flag, f"{getattr(self, name):g}"]
+        if self.drop_fraction > 0 and self.drop_fraction != VARIANTS["dropped-frames"]["drop_fraction"]:
+            args += ["--drop-fraction", f"{self.drop_fraction:g}"]
+        if self.photo_hz > 0 and self.photo_hz != VARIANTS["photo-set"]["photo_hz"]:
+            args += ["--photo-hz", f"{self.photo_hz:g}"]
         return shlex.join(args)
+
+
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(SynthConfig)}
+
+
+def with_variants(config: SynthConfig, *names: str) -> SynthConfig:
+    """A copy of config with the named adversarial variants (VARIANTS) switched on.
+
+    InputError for an unknown name, both motions, or dropped-frames with photo-set.
+    """
+    fields: dict[str, object] = {}
+    for name in names:
+        if name not in VARIANTS:
+            raise InputError(f"unknown variant {name!r}; known variants: {', '.join(VARIANTS)}")
+        fields.update(VARIANTS[name])
+    if {"rotation-start", "rotation-only"} <= set(names):
+        raise InputError("rotation-start and rotation-only do not combine; choose one of them")
+    if {"dropped-frames", "photo-set"} <= set(names):
+        raise InputError("dropped-frames and photo-set do not combine; choose one of them")
+    return dataclasses.replace(config, **fields)
+
+
+def drop_pattern(n: int, fraction: float, seed: int = 0) -> np.ndarray:
+    """(n,) bool, True for the frames a recording with dropped frames misses.
+
+    round(fraction * n) frames in separate runs (a kept frame between any two): one run each of 2,
+    3 and 4 frames first (as far as the count allows), then runs of 1 to 4 (mostly 1). The first and
+    the last frame are always kept. Seeded.
+    """
+    rng = np.random.default_rng([seed, 43])
+    target = int(round(fraction * n))
+    drop = np.zeros(n, bool)
+    forced = [2, 3, 4]
+    while int(drop.sum()) < target:
+        want = forced[0] if forced else int(rng.choice([1, 1, 1, 2, 3, 4]))
+        length = min(want, target - int(drop.sum()))
+        free = np.array([], np.int64)
+        while length >= 1:
+            if n - length - 1 >= 1:  # starts 1 .. n - 1 - length keep the first and last frame
+                # a run at s needs frames s - 1 .. s + length free (no merging with another run)
+                busy = np.convolve(drop.astype(np.int64), np.ones(length + 2, np.int64), "valid")
+                free = np.flatnonzero(busy == 0) + 1
+            if len(free):
+                break
+            length -= 1
+        if not len(free):
+            break  # no room left for another separate run
+        start = int(rng.choice(free))
+        drop[start : start + length] = True
+        if forced:
+            forced.pop(0)
+    return drop
+
+
+def camera_path(config: SynthConfig, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (n_frames,) and poses T_wc of the whole walk of `config` at its fps."""
+    n, fps, seed, speed = config.n_frames, config.fps, config.seed, config.speed
+    if config.motion == "rotation-start":
+        return pan_then_walk(scene, n, fps, seed, speed, config.pan_seconds, config.pan_deg)
+    if config.motion == "rotation-only":
+        return look_around(scene, n, fps, seed, speed, config.pan_seconds, config.pan_deg)
+    return walkthrough(scene, n, fps, seed, speed)
 
 
 def generate(
@@ -130,54 +298,74 @@ def generate(
     config.validate()
     out = Path(out_dir)
     _prepare_dir(out)
-    if config.write_frames and (out / "frames").exists() and not _only_our_frames(out / "frames"):
+    photos = config.photo_hz > 0  # a photo set: frames only, no video
+    write_frames = config.write_frames or photos
+    if write_frames and (out / "frames").exists() and not _only_our_frames(out / "frames"):
         raise InputError(
             f"{out / 'frames'}: holds files other than frames; move them or choose another --out"
         )
     scene = make_scene(config.scene, config.seed)
+    if config.low_texture:
+        scene = low_texture(scene)
     camera = config.camera()
     n = config.n_frames
-    timestamps, T_wc = walkthrough(scene, n, config.fps, config.seed, config.speed)
+    timestamps, T_wc = camera_path(config, scene)  # every frame of the walk
+    keep = config.frame_indices()  # the frames the recording holds
     renderer = Renderer(scene, camera, config.supersample, msaa=config.msaa)
     post = _PostProcess(config, camera, timestamps, T_wc)
-    tmp_video = out / ".video.tmp.mp4"
-    frames_tmp = out / ".frames.tmp" if config.write_frames else None
+    tmp_video = None if photos else out / ".video.tmp.mp4"
+    frames_tmp = out / ".frames.tmp" if write_frames else None
     if frames_tmp is not None:
         shutil.rmtree(frames_tmp, ignore_errors=True)
         frames_tmp.mkdir()
-    writer = cv2.VideoWriter(
-        str(tmp_video), cv2.VideoWriter_fourcc(*"mp4v"), config.fps, (camera.width, camera.height)
-    )
-    if not writer.isOpened():
-        raise BackendUnavailableError(f"{tmp_video}: OpenCV cannot open an mp4v video writer (no FFmpeg?)")
+    writer = None
+    if tmp_video is not None:
+        writer = cv2.VideoWriter(
+            str(tmp_video), cv2.VideoWriter_fourcc(*"mp4v"), config.fps, (camera.width, camera.height)
+        )
+        if not writer.isOpened():
+            raise BackendUnavailableError(
+                f"{tmp_video}: OpenCV cannot open an mp4v video writer (no FFmpeg?)"
+            )
     try:
-        for i in range(n):
+        for k, i in enumerate(keep.tolist()):
             img, depth = renderer.render(T_wc[i], with_depth=post.needs_depth)
             frame = post.apply(i, img, depth)
-            writer.write(frame)
+            if writer is not None:
+                writer.write(frame)
             if frames_tmp is not None:
-                cv2.imwrite(str(frames_tmp / f"{i:06d}.png"), frame)
+                cv2.imwrite(str(frames_tmp / f"{k:06d}.png"), frame)
             if progress is not None:
-                progress(i + 1, n, "frames")
+                progress(k + 1, len(keep), "frames")
     except BaseException:
-        writer.release()
-        tmp_video.unlink(missing_ok=True)
+        if writer is not None:
+            writer.release()
+            tmp_video.unlink(missing_ok=True)
         if frames_tmp is not None:
             shutil.rmtree(frames_tmp, ignore_errors=True)
         raise
-    writer.release()
+    if writer is not None:
+        writer.release()
+    subset = len(keep) < n
+    rec_t, rec_T = timestamps[keep], T_wc[keep]
+    stamps = "".join(f"{t:.9f}\n" for t in rec_t)
     # everything is staged under temporary names, then renamed in one quick run at the end
-    staged = [(tmp_video, out / "video.mp4")]
+    staged = [] if tmp_video is None else [(tmp_video, out / "video.mp4")]
     try:
+        if tmp_video is not None and subset:
+            retime_mp4(tmp_video, np.append(np.diff(keep), 1))  # the kept frames at their true times
+        if frames_tmp is not None and subset:
+            (frames_tmp / "timestamps.txt").write_text(stamps)  # image folders read their times here
         (out / "gt").mkdir(exist_ok=True)
-        staged.append(_stage_text(out / "timestamps.txt", "".join(f"{t:.9f}\n" for t in timestamps)))
+        staged.append(_stage_text(out / "timestamps.txt", stamps))
         staged.append(_stage_text(out / "camera.json", json.dumps(camera.to_dict(), indent=2) + "\n"))
-        staged.append(_stage_text(out / "gt" / "trajectory.tum", trajectory_tum(timestamps, T_wc)))
+        staged.append(_stage_text(out / "gt" / "trajectory.tum", trajectory_tum(rec_t, rec_T)))
         staged.append(_stage_text(out / "gt" / "segments.txt", segments_txt(scene)))
         axes = {"directions": scene.axes.tolist(), "vertical_index": 0, "names": scene.axis_names}
         staged.append(_stage_text(out / "gt" / "axes.json", json.dumps(axes, indent=2) + "\n"))
         tmp_map = out / "gt" / ".map.tmp.papl"
-        gt_map(scene, camera, timestamps, T_wc, config).save(tmp_map)
+        every = 1 if photos else KEYFRAME_EVERY  # in a photo set every image is a keyframe
+        gt_map(scene, camera, rec_t, rec_T, config, keyframe_every=every).save(tmp_map)
         staged.append((tmp_map, out / "gt" / "map.papl"))
     except BaseException:
         for tmp, _ in staged:
@@ -187,6 +375,8 @@ def generate(
         raise
     for tmp, final in staged:
         os.replace(tmp, final)
+    if photos:
+        (out / "video.mp4").unlink(missing_ok=True)  # the video of an earlier run
     if frames_tmp is not None or _only_our_frames(out / "frames"):
         shutil.rmtree(out / "frames", ignore_errors=True)  # frames of an earlier run
     if frames_tmp is not None:
@@ -195,14 +385,20 @@ def generate(
     info = {
         "scene": config.scene,
         "seed": config.seed,
-        "frames": n,
+        "frames": len(keep),
         "path_length_m": round(length, 4),
-        "config": dataclasses.asdict(config),
+        "config": config.to_dict(),
         "command": config.command(out_dir),
         "software_version": __version__,
         "segments": int(len(scene.segments)),
         "axes": scene.axis_names,
     }
+    if config.variants:
+        info["variants"] = config.variants
+        info["recording"] = "frames" if photos else "video.mp4"
+        info["walk_frames"] = n
+    if config.drop_fraction > 0:
+        info["dropped_frames"] = np.setdiff1d(np.arange(n), keep).tolist()
     tmp, final = _stage_text(out / "scene.json", json.dumps(info, indent=2) + "\n")
     os.replace(tmp, final)
     return out
@@ -221,11 +417,14 @@ def _prepare_dir(out: Path) -> None:
 
 
 def _only_our_frames(folder: Path) -> bool:
-    """Whether `folder` exists and holds nothing but NNNNNN.png frames (safe to replace)."""
+    """Whether `folder` exists and holds nothing but NNNNNN.png frames and the timestamps.txt that
+    variants write beside them (safe to replace)."""
     if not folder.is_dir():
         return False
     return all(
-        p.is_file() and p.suffix == ".png" and p.stem.isdigit() and len(p.stem) == 6 for p in folder.iterdir()
+        p.is_file()
+        and ((p.suffix == ".png" and p.stem.isdigit() and len(p.stem) == 6) or p.name == "timestamps.txt")
+        for p in folder.iterdir()
     )
 
 
@@ -258,10 +457,16 @@ def segments_txt(scene: Scene) -> str:
 
 
 def gt_map(
-    scene: Scene, camera: Camera, timestamps: np.ndarray, T_wc: np.ndarray, config: SynthConfig
+    scene: Scene,
+    camera: Camera,
+    timestamps: np.ndarray,
+    T_wc: np.ndarray,
+    config: SynthConfig,
+    keyframe_every: int = KEYFRAME_EVERY,
 ) -> Map:
-    """The ground truth as a Map: keyframes every 10th frame, corner points, GT segments, axes."""
-    kf_frames = np.arange(0, len(T_wc), KEYFRAME_EVERY)
+    """The ground truth as a Map: keyframes every 10th frame (`keyframe_every`) of the recording,
+    corner points, GT segments, axes."""
+    kf_frames = np.arange(0, len(T_wc), keyframe_every)
     kf_T = T_wc[kf_frames]
     kf_ids = np.arange(len(kf_frames), dtype=np.int64)
     keyframes = Keyframes(
@@ -306,7 +511,7 @@ def gt_map(
         "source": "papl-map synth (ground truth)",
         "scene": scene.name,
         "axis_names": scene.axis_names,
-        "config": dataclasses.asdict(config),
+        "config": config.to_dict(),
         "software_version": __version__,
     }
     return Map(camera, keyframes, points, lines, Axes(scene.axes.copy(), 0), metadata)

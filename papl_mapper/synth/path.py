@@ -5,6 +5,9 @@ long enough for most of a loop walks whole loops and ends at the start; a shorte
 along the route keeping to the right, turns round in a U (moving, so the turn has parallax) and
 walks back. Heading follows the path, with slow look-around,
 small pitch/roll jitter and a walking bob. Poses are T_wc (camera -> world), OpenCV camera frame.
+
+Two rotation-only motions start from the same walk: `pan_then_walk` stands at its start and pans in
+place before walking it; `look_around` stands there and pans back and forth, never moving.
 """
 
 from __future__ import annotations
@@ -135,3 +138,73 @@ def rotation_wc(yaw: np.ndarray, pitch: np.ndarray | float, roll: np.ndarray | f
     Rz[:, 2, 2] = 1
     Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = cr, -sr, sr, cr
     return R0 @ Rx @ Rz
+
+
+def _yaw_about_centre(T_wc: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Copies of the pose T_wc (4, 4) turned by `yaw` (N,) about the world vertical through its centre."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    Rz = np.zeros((len(yaw), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    out = np.repeat(T_wc[None], len(yaw), axis=0)
+    out[:, :3, :3] = Rz @ T_wc[:3, :3]
+    return out
+
+
+def _pan_sign(seed: int) -> float:
+    """Which way a pan turns (+1 left, -1 right): seeded."""
+    return 1.0 if np.random.default_rng([seed, 41]).random() < 0.5 else -1.0
+
+
+def pan_then_walk(
+    scene: Scene,
+    n_frames: int,
+    fps: float,
+    seed: int = 0,
+    speed: float = 1.0,
+    pan_seconds: float = 2.5,
+    pan_deg: float = 45.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A rotation-only start: stand at the start of the walk and pan in place, then walk.
+
+    The first round(pan_seconds * fps) frames turn by `pan_deg` (seeded direction, smoothstep
+    profile) about the camera centre into the walk's first view; the camera centre stays exactly at
+    the walk's start until the walk begins. The walk is `walkthrough` for the remaining frames.
+    """
+    n_pan = min(int(round(pan_seconds * fps)), n_frames - 1)
+    t = np.arange(n_frames) / fps
+    _, walk = walkthrough(scene, n_frames - n_pan, fps, seed, speed)
+    u = t[:n_pan] * fps / max(n_pan, 1)  # 0 .. (n_pan - 1) / n_pan: the turn ends on the first walk frame
+    offset = _pan_sign(seed) * math.radians(pan_deg) * (1.0 - u * u * (3 - 2 * u))
+    return t, np.concatenate([_yaw_about_centre(walk[0], offset), walk])
+
+
+def look_around(
+    scene: Scene,
+    n_frames: int,
+    fps: float,
+    seed: int = 0,
+    speed: float = 1.0,
+    pan_seconds: float = 2.5,
+    pan_deg: float = 45.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A rotation-only recording: stand at the start of the walk and pan back and forth, never moving.
+
+    Yaw sweeps `pan_deg` away from the walk's first view and back (one sweep every `pan_seconds`,
+    sinusoidal speed, seeded direction), with hand-held pitch/roll wobble; the camera centre is the
+    walk's first position in every frame.
+    """
+    rng = np.random.default_rng([seed, 47])
+    t = np.arange(n_frames) / fps
+    _, walk = walkthrough(scene, n_frames, fps, seed, speed)
+    offset = _pan_sign(seed) * math.radians(pan_deg) * 0.5 * (1.0 - np.cos(math.pi * t / pan_seconds))
+    pitch = math.radians(1.0) * _smooth_noise(rng, t, 0.2, 1.2)
+    roll = math.radians(1.0) * _smooth_noise(rng, t, 0.2, 1.2)
+    T_wc = _yaw_about_centre(walk[0], offset)
+    # wobble about the camera's own axes (still a pure rotation about its centre)
+    cp, sp, cr, sr = np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    Rx = np.zeros((n_frames, 3, 3))
+    Rx[:, 0, 0], Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = 1, cp, -sp, sp, cp
+    Rz = np.zeros((n_frames, 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = cr, -sr, sr, cr, 1
+    T_wc[:, :3, :3] = T_wc[:, :3, :3] @ Rx @ Rz
+    return t, T_wc

@@ -9,6 +9,7 @@ units are metres. Every builder is seeded and deterministic.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -466,6 +467,33 @@ def garage(seed: int = 0) -> Scene:
 
 
 SCENES: dict[str, Callable[[int], Scene]] = {"corridor": corridor, "atlanta": atlanta, "garage": garage}
+
+#: Low-texture scenes: materials of large surfaces made blank (walls, ceilings, pillars, facades)...
+BLANK_MATERIALS = ("wall", "room-wall", "ceiling", "pillar", "facade")
+#: ...and those made faint (floors, ground): this fraction of their texture contrast is kept.
+FAINT_MATERIALS = ("floor", "ground")
+FAINT_CONTRAST = 0.2
+
+
+def low_texture(scene: Scene) -> Scene:
+    """The same scene (geometry, GT segments, axes, route) with blank walls and ceilings and faint floors.
+
+    Materials whose names start with one of BLANK_MATERIALS get no texture at all (a plain colour,
+    still shaded by orientation, so junctions and corners stay visible as intensity edges); those
+    starting with FAINT_MATERIALS keep FAINT_CONTRAST of their contrast. Doors, windows, posters,
+    skirting, lights and paint are unchanged: they are the few places with texture left.
+    """
+    mats = []
+    for m in scene.materials:
+        if m.emissive:
+            mats.append(m)
+        elif m.name.startswith(BLANK_MATERIALS):
+            mats.append(dataclasses.replace(m, contrast=0.0))
+        elif m.name.startswith(FAINT_MATERIALS):
+            mats.append(dataclasses.replace(m, contrast=m.contrast * FAINT_CONTRAST))
+        else:
+            mats.append(m)
+    return dataclasses.replace(scene, materials=mats)
 
 
 def make_scene(name: str, seed: int = 0) -> Scene:
