@@ -35,7 +35,8 @@ want=$(sha256sum pyproject.toml | cut -d' ' -f1)
 if [[ ! -f $stamp || "$(cat "$stamp")" != "$want" ]]; then
     echo "setup: installing papl-mapper and its dependencies into .venv"
     .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e ".[dev]"
+    # the ray extra is optional for users (`papl-map batch --ray`); the tests run it on a local cluster
+    .venv/bin/python -m pip install -q -e ".[dev,ray]"
     echo "$want" > "$stamp"
 fi
 
