@@ -34,6 +34,10 @@ class FeatureConfig:
     """Detect ORB keypoints on keyframes and match them across weak KLT links."""
     max_features: int = 1500
     """Most ORB keypoints per keyframe (on the work image)."""
+    fast_threshold: int = 5
+    """FAST corner threshold (OpenCV's default is 20). Low: low-contrast walls still give corners, and
+    the `max_features` cap keeps the strongest where there are many. On the synthetic 1 Hz photo set,
+    5 instead of 20 raised the correct matches between neighbouring photos from 216 to 330 (median)."""
     break_survival: float = 0.5
     """A frame that keeps fewer than this fraction of the previous frame's KLT tracks is a break: it
     and the frame before it become keyframes."""
@@ -48,9 +52,12 @@ class FeatureConfig:
     max_hamming: int = 64
     """Largest Hamming distance (of 256 bits) of a match."""
     ransac_threshold_px: float = 2.0
-    """Epipolar inlier threshold of the verification (pixels)."""
+    """Essential-matrix inlier threshold of the verification (pixels)."""
     min_inliers: int = 25
     """Fewest verified matches for a keyframe pair to contribute."""
+    min_inlier_ratio: float = 0.25
+    """...and at least this fraction of its matches (COLMAP's two-view default): a pair of look-alike
+    views gathers many matches of which a few fit some geometry by chance."""
     seed: int = 0
     """Seed of OpenCV's RANSAC."""
 
@@ -77,7 +84,7 @@ class OrbDetector:
     """Oriented multi-scale ORB keypoints and descriptors of one gray image."""
 
     def __init__(self, config: FeatureConfig):
-        self._orb = cv2.ORB_create(nfeatures=config.max_features)
+        self._orb = cv2.ORB_create(nfeatures=config.max_features, fastThreshold=config.fast_threshold)
 
     def detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Keypoint pixels (N, 2) and descriptors (N, 32) uint8."""
@@ -118,19 +125,22 @@ def match_pair(
     return m[:, :2].astype(np.int64), m[:, 2]
 
 
-def verify_pair(uv_a: np.ndarray, uv_b: np.ndarray, threshold_px: float, seed: int = 0) -> np.ndarray:
-    """Inlier mask of matched undistorted pixels under a fundamental matrix (OpenCV's USAC).
+def verify_pair(
+    uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, threshold_px: float, seed: int = 0
+) -> np.ndarray:
+    """Inlier mask of matched undistorted pixels under an essential matrix (OpenCV's USAC).
 
-    USAC rather than plain RANSAC: on wide-baseline pairs with few inliers it is 5-10x faster; the
-    fundamental rather than the essential matrix: as many inliers at a tenth of the time. Under a
-    pure rotation the matrix is degenerate, but its inliers still agree with the rotation, which is
-    all that chaining tracks needs.
+    The essential matrix, not the fundamental: with the camera known it has 5 degrees of freedom
+    instead of 7, so look-alike textures (repeated tiles, doors) fit it far less often. USAC rather
+    than plain RANSAC: on wide-baseline pairs with few inliers it is about 10x faster. Under a pure
+    rotation the matrix is degenerate, but its inliers still agree with the rotation, which is all
+    that chaining tracks needs.
     """
     if len(uv_a) < 8:
         return np.zeros(len(uv_a), bool)
     cv2.setRNGSeed(seed)
-    F, mask = cv2.findFundamentalMat(uv_a, uv_b, cv2.USAC_FAST, threshold_px, 0.999)
-    if F is None or mask is None:
+    E, mask = cv2.findEssentialMat(uv_a, uv_b, K, cv2.USAC_FAST, 0.999, threshold_px)
+    if E is None or mask is None:
         return np.zeros(len(uv_a), bool)
     return mask.ravel().astype(bool)
 
@@ -210,6 +220,7 @@ def chain_tracks(node_frame: np.ndarray, edges: np.ndarray, edge_cost: np.ndarra
 
 def feature_tracks(
     feats: KeyframeFeatures,
+    K: np.ndarray,
     point_frame: np.ndarray,
     point_track: np.ndarray,
     first_id: int,
@@ -240,8 +251,8 @@ def feature_tracks(
         m, dist = match_pair(node_desc[sa], node_desc[sb], cfg.ratio, cfg.max_hamming)
         if len(m) < cfg.min_inliers:
             continue
-        ok = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], cfg.ransac_threshold_px, cfg.seed)
-        if ok.sum() < cfg.min_inliers:
+        ok = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], K, cfg.ransac_threshold_px, cfg.seed)
+        if ok.sum() < max(cfg.min_inliers, cfg.min_inlier_ratio * len(m)):
             continue
         verified += 1
         edges.append(np.column_stack([m[ok, 0] + starts[i], m[ok, 1] + starts[j]]))

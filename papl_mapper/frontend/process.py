@@ -399,6 +399,7 @@ class _Run:
         t0 = time.perf_counter()
         ft = feature_tracks(
             self.feats,
+            self.und.undistorted_camera.K,
             frame,
             track,
             int(track.max(initial=-1)) + 1,

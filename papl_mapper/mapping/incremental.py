@@ -20,6 +20,7 @@ from papl_mapper.geometry.se3 import invert, rotation_angle_deg, similarity_T_cw
 from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions
+from papl_mapper.mapping.relative_pose import RelativePoseConfig, register_relative
 from papl_mapper.mapping.revisit import Revisit, RevisitConfig, TrackIndex, close_loop, find_revisit
 from papl_mapper.mapping.rotation_only import RotationOnlyConfig, rotation_only_recording
 from papl_mapper.mapping.tracking import PnPConfig, PnPResult, track_pnp
@@ -38,6 +39,8 @@ class IncrementalConfig:
     """PnP tracking thresholds."""
     revisit: RevisitConfig = field(default_factory=RevisitConfig)
     """Revisit detection and loop closure."""
+    relative_pose: RelativePoseConfig = field(default_factory=RelativePoseConfig)
+    """A frame that PnP cannot pose is registered by its essential matrix to the last keyframe."""
     rotation_only: RotationOnlyConfig = field(default_factory=RotationOnlyConfig)
     """Orientations of frames that turn in place where PnP cannot pose them (no parallax)."""
     init_search_keyframes: int = 25
@@ -283,6 +286,12 @@ def _extend(
             last_keyframe = f2
             continue
         res, n_tracks = _pnp(tracks, reg, f, last_T, cfg, dirs)
+        if (res is None or not res.ok) and cfg.relative_pose.enabled:
+            # too few mapped points (a wide baseline): the step from the last keyframe, scaled by them
+            rel = register_relative(
+                tracks, f, last_keyframe, reg.T_cw[last_keyframe], reg.points_w, cfg.relative_pose
+            )
+            res = rel if rel.ok else res
         if res is None or not res.ok:
             log.debug("frame %d not registered: %s", f, "no map points" if res is None else res.reason)
             misses += 1

@@ -52,7 +52,7 @@ def rotation_pose(
     T = np.eye(4)
     T[:3, :3] = R_fg @ T_cw_g[:3, :3]
     centre = -T_cw_g[:3, :3].T @ T_cw_g[:3, 3]
-    T[:3, 3] = -T[:3, :3] @ centre
+    T[:3, 3] = -T[:3, :3] @ centre + 0.0  # + 0.0: no negative zeros in the written trajectory
     return T, len(i_f)
 
 

@@ -1,0 +1,72 @@
+"""Registering a frame from its essential matrix to the last keyframe, scaled by a few mapped points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from papl_mapper.geometry.se3 import rotation_angle_deg, so3_exp
+from papl_mapper.map import Camera
+from papl_mapper.mapping.relative_pose import RelativePoseConfig, register_relative
+from papl_mapper.tracks import Tracks
+
+CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
+
+
+def _two_views(noise_px: float, seed: int = 0):
+    """Frame 0 (posed) and frame 1 a wide step away; 300 shared tracks, world = frame 0 scaled by 2."""
+    rng = np.random.default_rng(seed)
+    X = np.column_stack([rng.uniform(-3, 3, 300), rng.uniform(-2, 2, 300), rng.uniform(4, 9, 300)])
+    T0 = np.eye(4)
+    T1 = np.eye(4)
+    T1[:3, :3] = so3_exp(np.array([0.02, -0.25, 0.03]))
+    T1[:3, 3] = [-0.8, 0.05, -0.3]
+    uv = []
+    for T in (T0, T1):
+        Xc = X @ T[:3, :3].T + T[:3, 3]
+        p = Xc @ CAM.K.T
+        uv.append(p[:, :2] / p[:, 2:3] + rng.normal(0, noise_px, (300, 2)))
+    tracks = Tracks(
+        CAM,
+        np.arange(2),
+        np.arange(2.0),
+        np.ones(2, bool),
+        np.repeat([0, 1], 300),
+        np.tile(np.arange(300), 2),
+        np.vstack(uv),
+        np.zeros(0, np.int64),
+        np.zeros(0, np.int64),
+        np.zeros((0, 4)),
+        np.zeros(0, np.int64),
+        np.full((2, 3, 3), np.nan),
+    )
+    return tracks, X, T1
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 0.5])
+def test_pose_from_the_step_and_six_mapped_points(noise_px):
+    tracks, X, T1 = _two_views(noise_px)
+    mapped = {i: X[i] for i in range(6)}  # too few for a reliable PnP, enough for one step length
+    res = register_relative(tracks, 1, 0, np.eye(4), mapped, RelativePoseConfig())
+    assert res.ok, res.reason
+    assert rotation_angle_deg(res.T_cw[:3, :3], T1[:3, :3]) < 0.1
+    c_est = -res.T_cw[:3, :3].T @ res.T_cw[:3, 3]
+    c_gt = -T1[:3, :3].T @ T1[:3, 3]
+    assert np.linalg.norm(c_est - c_gt) < 0.02 * np.linalg.norm(c_gt)
+
+
+def test_wrong_mapped_points_do_not_scale_the_step():
+    tracks, X, T1 = _two_views(0.3)
+    mapped = {i: X[i] for i in range(8)}
+    mapped.update({i: X[i] * 3.0 for i in range(8, 11)})  # three points from a wrong scale
+    res = register_relative(tracks, 1, 0, np.eye(4), mapped, RelativePoseConfig())
+    assert res.ok
+    c_est = -res.T_cw[:3, :3].T @ res.T_cw[:3, 3]
+    c_gt = -T1[:3, :3].T @ T1[:3, 3]
+    assert np.linalg.norm(c_est - c_gt) < 0.02 * np.linalg.norm(c_gt)
+
+
+def test_too_few_mapped_points_is_refused():
+    tracks, X, _ = _two_views(0.0)
+    res = register_relative(tracks, 1, 0, np.eye(4), {0: X[0], 1: X[1]}, RelativePoseConfig())
+    assert not res.ok and "mapped points" in res.reason
