@@ -43,6 +43,12 @@ def _configure_logging(debug: bool, quiet: bool) -> None:
     root.handlers[:] = [handler]
     root.setLevel(level)
     root.propagate = False
+    # OpenCV's own warnings (a truncated PNG) would repeat our one-line messages in another format
+    import cv2
+
+    cv2.utils.logging.setLogLevel(
+        cv2.utils.logging.LOG_LEVEL_INFO if debug else cv2.utils.logging.LOG_LEVEL_ERROR
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
