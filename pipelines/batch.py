@@ -15,7 +15,9 @@ returns one row for batch.json. Both engines run that same function:
 A recording is finished when OUT/.batch/<name>/result.json says "ok" under the key of its current
 inputs and settings (`job_key`: the stage checkpoint keys of `pipelines/checkpoint.py` chained from
 the frontend key, plus the whole config and the extras) and its files are there; a rerun of the
-batch skips it. batch.json and index.html are rewritten as recordings finish.
+batch skips it. The job computes its key where it runs; the driver recomputes it only for recordings
+that finished before, from the input's size and mtime when they are unchanged (no hashing of
+unchanged videos on the driver). batch.json and index.html are rewritten as recordings finish.
 """
 
 from __future__ import annotations
@@ -31,7 +33,6 @@ import os
 import resource
 import signal
 import socket
-import subprocess
 import sys
 import threading
 import time
@@ -56,21 +57,14 @@ VERSION = 1
 STATE = ".batch"
 """OUT/.batch/<name>/ holds one recording's job.json, result.json, attempts and worker.log."""
 
-THREAD_ENV = (
-    "OMP_NUM_THREADS",
-    "OPENBLAS_NUM_THREADS",
-    "MKL_NUM_THREADS",
-    "BLIS_NUM_THREADS",
-    "VECLIB_MAXIMUM_THREADS",
-    "NUMEXPR_NUM_THREADS",
-)
-"""Set for a local worker process before it starts, so the BLAS pools are created at its size."""
-
 DEFAULT_MEMORY_GIB = 2.0
 """Memory one recording is expected to need: sizes the default --workers and Ray's memory request.
 A 60 s 1280x720 walk peaks at 0.6 GiB, a 5-minute one at 1.6 GiB (benchmarks/results/memory_long.json)."""
 
 Row = dict[str, Any]
+
+WRITE_EVERY_S = 2.0
+"""batch.json and index.html are rewritten at most this often while a batch runs (and at its end)."""
 
 
 # ---- options and jobs ---------------------------------------------------------------------------------
@@ -179,7 +173,6 @@ class Job:
     report: bool
     resume: bool
     threads: int
-    key: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -208,7 +201,6 @@ class Job:
             "camera": self.camera,
             "gt": self.gt,
             "range": {"start_s": self.start, "end_s": self.end, "step": self.step, "max_size": self.max_size},
-            "key": self.key,
         }
 
 
@@ -274,10 +266,9 @@ def make_jobs(
             threads=threads,
         )
         try:
-            cfg = job.config()
+            job.config()
         except PaplError as exc:
             raise InputError(f"{rec.origin}: {exc}") from exc
-        job.key = job_key(job, cfg)
         jobs.append(job)
     return jobs
 
@@ -308,7 +299,30 @@ def _quiet_logs() -> Iterator[None]:
         root.setLevel(level)
 
 
-def frontend_key(job: Job, cfg) -> str:
+def probe(job: Job, cached: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What the keys need from the recording: its SHA-256 and its frame size after `max_size`.
+
+    Reused from `cached` (a finished job's probe) when the file's size, mtime and the frame range
+    are unchanged; else the recording is opened and hashed (InputError when it cannot be opened).
+    """
+    from papl_mapper.pipelines.run import _sha256
+
+    from papl_mapper.frontend.video import open_recording
+
+    path = Path(job.recording)
+    try:
+        st = path.stat()
+    except OSError as exc:
+        raise InputError(f"{path}: {exc.strerror or exc}") from exc
+    sig = [st.st_size, st.st_mtime_ns, job.start, job.end, job.step, job.max_size]
+    if cached and cached.get("sig") == sig:
+        return cached
+    with _quiet_logs():
+        rec = open_recording(path, job.step, job.start, job.end, job.max_size)
+    return {"sig": sig, "sha256": _sha256(path), "width": rec.width, "height": rec.height}
+
+
+def frontend_key(job: Job, cfg, probed: dict[str, Any]) -> str:
     """The key `pipelines.run.run` gives the frontend checkpoint of this job (JSON text).
 
     The same fields as run's: the input's SHA-256, the frontend config, the camera fitted to the
@@ -316,19 +330,15 @@ def frontend_key(job: Job, cfg) -> str:
     frontend checkpoint the run wrote.
     """
     from papl_mapper.pipelines import checkpoint as ckpt
-    from papl_mapper.pipelines.run import _sha256
 
     from papl_mapper.config import config_to_dict
     from papl_mapper.frontend.camera import camera_for_recording
-    from papl_mapper.frontend.video import open_recording
 
-    recording = Path(job.recording)
     with _quiet_logs():
-        rec = open_recording(recording, job.step, job.start, job.end, job.max_size)
-        cam = camera_for_recording(job.camera, rec.width, rec.height, cfg.hfov_deg)
+        cam = camera_for_recording(job.camera, probed["width"], probed["height"], cfg.hfov_deg)
     return json.dumps(
         {
-            "input": _sha256(recording),
+            "input": probed["sha256"],
             "frontend": config_to_dict(cfg.frontend),
             "camera": cam.camera.to_dict(),
             "range": [job.start, job.end, job.step, job.max_size],
@@ -339,23 +349,18 @@ def frontend_key(job: Job, cfg) -> str:
     )
 
 
-def job_key(job: Job, cfg) -> str | None:
-    """A digest of everything a finished recording's outputs depend on, or None when the recording
-    cannot be opened (then the job runs and reports why).
+def job_key(job: Job, cfg, probed: dict[str, Any]) -> str:
+    """A digest of everything a finished recording's outputs depend on.
 
     The stage checkpoint keys chained from the frontend key (input, camera, range, each stage's
     settings), the whole config (the stages' keys leave out what only the final outputs read) and
-    the extras asked for.
+    the extras asked for. PaplError when the camera file cannot be read.
     """
     from papl_mapper.pipelines.checkpoint import StageStore
 
     from papl_mapper.config import config_to_dict
 
-    try:
-        fkey = frontend_key(job, cfg)
-    except PaplError:
-        return None
-    stages = StageStore(None, fkey).chain(copy.deepcopy(cfg))
+    stages = StageStore(None, frontend_key(job, cfg, probed)).chain(copy.deepcopy(cfg))
     text = json.dumps(
         {
             "stages": stages,
@@ -367,6 +372,15 @@ def job_key(job: Job, cfg) -> str | None:
         default=str,
     )
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _key_of(job: Job, cfg, cached: dict[str, Any] | None = None) -> tuple[str | None, dict | None]:
+    """(key, probe), or (None, None) when the recording or its camera cannot be read (the run says why)."""
+    try:
+        probed = probe(job, cached)
+        return job_key(job, cfg, probed), probed
+    except PaplError:
+        return None, None
 
 
 # ---- the job (both engines) ---------------------------------------------------------------------------
@@ -465,9 +479,11 @@ def run_job(spec: dict[str, Any]) -> Row:
     running_log = out / ".checkpoint" / "log.txt"
     handler: logging.Handler | None = None
     stage = "setting up"
+    key = None
     try:
         with thread_limits(job.threads):
             cfg = job.config()
+            key, row["probe"] = _key_of(job, cfg)
             running_log.parent.mkdir(parents=True, exist_ok=True)
             handler = file_log(running_log, "a" if job.resume else "w")
             stage = "mapping"
@@ -519,7 +535,8 @@ def run_job(spec: dict[str, Any]) -> Row:
             _close_log(handler)
     row["wall_s"] = round(time.perf_counter() - t0, 3)
     row["peak_rss_mib"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
-    write_result(state, job.key, row)
+    row["key"] = key
+    write_result(state, key, row)
     return row
 
 
@@ -566,14 +583,20 @@ def read_result(state: Path) -> tuple[str | None, Row] | None:
 
 def finished(job: Job) -> Row | None:
     """The row of a finished recording whose key and files are unchanged, else None."""
-    if job.key is None or not job.resume:
+    if not job.resume:
         return None
     got = read_result(Path(job.state))
-    if got is None or got[0] != job.key or got[1].get("status") != "ok":
+    if got is None or got[0] is None or got[1].get("status") != "ok":
         return None
     row = got[1]
     if not all((Path(job.out) / f).exists() for f in row.get("files", ["map.papl"])):
         return None
+    key, probed = _key_of(job, job.config(), row.get("probe"))
+    if key != got[0]:
+        return None
+    if probed != row.get("probe"):  # touched but the same: remember the new size and mtime
+        row = {**row, "probe": probed}
+        write_result(Path(job.state), key, row)
     return row
 
 
@@ -601,9 +624,10 @@ def _last_line(path: Path) -> str:
 
 
 class LocalPool:
-    """At most `workers` recordings at once, each in a fresh worker process, from a concurrent.futures
-    pool. Not a ProcessPoolExecutor: when one of its processes dies the whole pool is broken and it
-    cannot say whose job killed it; here a dead worker is one failed recording."""
+    """At most `workers` recordings at once, each in a worker process of its own, from a
+    concurrent.futures pool. Not a ProcessPoolExecutor: when one of its processes dies the whole pool
+    is broken and it cannot say whose job killed it; here a dead worker is one failed recording.
+    Workers fork from a forkserver that has imported the pipeline (`batch_worker.child`)."""
 
     POLL_S = 0.2
     SIGINT_GRACE_S = 120.0
@@ -614,6 +638,10 @@ class LocalPool:
         self.memory_limit = int(memory_limit_gib * 2**30) if memory_limit_gib else None
         self._stop = threading.Event()
         self._kill = threading.Event()
+        import multiprocessing
+
+        self._ctx = multiprocessing.get_context("forkserver")
+        self._ctx.set_forkserver_preload(["papl_mapper.pipelines.batch_worker"])
 
     def run(self, jobs: list[Job], on_done: Callable[[Row], None], on_start: Callable[[Job], None]) -> None:
         """Run `jobs`; `on_done(row)` for each as it ends. Ctrl-C: the running workers are interrupted
@@ -654,38 +682,38 @@ class LocalPool:
         (state / "attempts").unlink(missing_ok=True)
         spec = state / "job.json"
         spec.write_text(json.dumps(job.to_dict(), indent=1))
-        env = dict(os.environ, PYTHONFAULTHANDLER="1", **dict.fromkeys(THREAD_ENV, str(job.threads)))
+        from papl_mapper.pipelines import batch_worker
+
         t0 = time.perf_counter()
         peak = over = 0
         interrupted_at = None
-        with open(state / "worker.log", "ab") as err:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "papl_mapper.pipelines.batch_worker", str(spec)],
-                stdin=subprocess.DEVNULL,
-                stdout=err,
-                stderr=err,
-                env=env,
-            )
-            while True:
-                try:
-                    code = proc.wait(timeout=self.POLL_S)
-                    break
-                except subprocess.TimeoutExpired:
-                    pass
-                rss = _rss(proc.pid)
-                peak = max(peak, rss)
-                if self.memory_limit and rss > self.memory_limit and not over:
-                    over = rss
-                    proc.kill()
-                if self._stop.is_set() and interrupted_at is None:
-                    interrupted_at = time.perf_counter()
-                    proc.send_signal(signal.SIGINT)
-                if self._kill.is_set() or (
-                    interrupted_at is not None and time.perf_counter() - interrupted_at > self.SIGINT_GRACE_S
-                ):
-                    proc.kill()
-        got = read_result(state)
-        row = got[1] if got is not None and got[0] == job.key else None
+        proc = self._ctx.Process(
+            target=batch_worker.child,
+            args=(str(spec), str(state / "worker.log")),
+            name=f"papl-batch {job.name}",
+        )
+        proc.start()
+        while True:
+            proc.join(self.POLL_S)
+            if proc.exitcode is not None:
+                code = proc.exitcode
+                break
+            rss = _rss(proc.pid)
+            peak = max(peak, rss)
+            if self.memory_limit and rss > self.memory_limit and not over:
+                over = rss
+                proc.kill()
+            if self._stop.is_set() and interrupted_at is None:
+                interrupted_at = time.perf_counter()
+                with contextlib.suppress(OSError):
+                    os.kill(proc.pid, signal.SIGINT)
+            if self._kill.is_set() or (
+                interrupted_at is not None and time.perf_counter() - interrupted_at > self.SIGINT_GRACE_S
+            ):
+                proc.kill()
+        proc.close()
+        got = read_result(state)  # removed before the start: any result is this run's
+        row = got[1] if got is not None else None
         if over:
             row = job.row(
                 "failed",
@@ -708,7 +736,7 @@ class LocalPool:
         row["peak_rss_mib"] = max(float(row.get("peak_rss_mib") or 0.0), round(peak / 2**20, 1))
         row["attempts"] = max(int(row.get("attempts") or 0), attempts(state), 1)
         if row["status"] != "ok":
-            write_result(state, job.key, row)
+            write_result(state, row.get("key"), row)
         return row
 
 
@@ -874,7 +902,7 @@ def run_batch(
             todo.append(job)
     running: set[str] = set()
     lock = threading.Lock()
-    last_write = [0.0]
+    last_write = [0.0, 0.0]  # when, and how long it took
     n_done = [len(jobs) - len(todo)]
 
     def doc(final: bool = False) -> dict[str, Any]:
@@ -896,19 +924,22 @@ def run_batch(
         }
 
     def write(final: bool = False) -> None:
+        # at most every 2 s, and never more than 5% of the driver's time (10,000 rows take ~2 s)
         now = time.perf_counter()
-        if final or now - last_write[0] >= 2.0:
+        if final or now - last_write[0] >= max(WRITE_EVERY_S, 20 * last_write[1]):
             folder.write(doc(final))
-            last_write[0] = now
+            last_write[:] = [time.perf_counter(), time.perf_counter() - now]
 
     def tick() -> None:
         if progress is not None:
-            progress(n_done[0], len(jobs), ", ".join(sorted(running)))
+            names = sorted(running)
+            more = f" +{len(names) - 3}" if len(names) > 3 else ""
+            progress(n_done[0], len(jobs), ", ".join(names[:3]) + more)
 
-    def on_start(job: Job) -> None:
+    def on_start(job: Job, status: str = "running") -> None:
         with lock:
             running.add(job.name)
-            rows[job.name] = {**rows[job.name], "status": "running"}
+            rows[job.name] = {**rows[job.name], "status": status}
             tick()
 
     def on_done(row: Row) -> None:
@@ -923,8 +954,9 @@ def run_batch(
             on_row(row)
 
     try:
+        waiting = {t.name for t in todo}
         for job in jobs:
-            if job.name not in {t.name for t in todo} and on_row is not None:
+            if job.name not in waiting and on_row is not None:
                 on_row(rows[job.name])
         write(final=not todo)
         tick()
@@ -935,7 +967,7 @@ def run_batch(
                 ray_engine.run(todo, on_done, on_start)
     except KeyboardInterrupt as exc:
         for name, r in rows.items():
-            if r["status"] == "running":
+            if r["status"] in ("running", "submitted"):
                 rows[name] = {**r, "status": "interrupted", "error": "interrupted"}
         folder.write(doc(final=False))
         raise BatchInterrupted(BatchResult(out, [rows[j.name] for j in jobs], eng.describe())) from exc

@@ -17,6 +17,7 @@ STATUS_COLOURS = {
     "interrupted": "#a15c00",
     "pending": "#666",
     "running": "#0059b3",
+    "submitted": "#0059b3",
 }
 
 _CSS = """

@@ -117,7 +117,7 @@ class RayEngine:
             if self.ray.is_initialized():
                 self.ray.shutdown()
 
-    def run(self, jobs: list[Job], on_done: Callable[[Row], None], on_start: Callable[[Job], None]) -> None:
+    def run(self, jobs: list[Job], on_done: Callable[[Row], None], on_start: Callable[..., None]) -> None:
         ray = self.ray
         pending: dict[Any, Job] = {}
         for job in jobs:
@@ -125,7 +125,7 @@ class RayEngine:
             state.mkdir(parents=True, exist_ok=True)
             for name in ("result.json", "attempts"):
                 (state / name).unlink(missing_ok=True)
-            on_start(job)
+            on_start(job, "submitted")  # Ray starts it when a node has the CPUs and memory
             pending[self.task.remote(job.to_dict())] = job
         try:
             while pending:
@@ -152,8 +152,8 @@ class RayEngine:
         try:
             row = ray.get(ref, timeout=0 if cancelled else None)
         except (ray.exceptions.TaskCancelledError, ray.exceptions.GetTimeoutError):
-            got = read_result(state)
-            if got is not None and got[0] == job.key:
+            got = read_result(state)  # removed before the submission: any result is this run's
+            if got is not None:
                 row = got[1]
             else:
                 row = job.row("interrupted" if attempts(state) else "pending", "interrupted")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from papl_mapper.pipelines.batch import frontend_key, read_result
+from papl_mapper.pipelines.batch import frontend_key, probe, read_result
 from papl_mapper.pipelines.batch_inputs import assign_names, collect
 from papl_mapper.pipelines.config import RunConfig
 
@@ -181,7 +181,7 @@ def test_batch_outputs_are_what_run_writes(batch, reference):
     job = Job.from_dict(json.loads((out / ".batch" / "a" / "job.json").read_text()))
     import hashlib
 
-    digest = hashlib.sha256(frontend_key(job, job.config()).encode()).hexdigest()[:16]
+    digest = hashlib.sha256(frontend_key(job, job.config(), probe(job)).encode()).hexdigest()[:16]
     assert (out / "a" / ".checkpoint" / f"frontend-{digest}").is_dir()
 
 
