@@ -236,6 +236,9 @@ class _Run:
         self.selector = KeyframeSelector(config.keyframes)
         self.orb = OrbDetector(config.features) if config.features.enabled else None
         self.feats = KeyframeFeatures()
+        # the last keyframes (row, point ids, image, described) and how many more to describe
+        self._recent_kf: deque[list] = deque(maxlen=max(1, config.features.window))
+        self._describe_next = 0
         self.total = recording.expected_frames()
         self.done = 0
         self.prev_gray: np.ndarray | None = None
@@ -297,14 +300,30 @@ class _Run:
             return
         self.is_kf[-1] = True
         self.stats.keyframe_reasons["break"] = self.stats.keyframe_reasons.get("break", 0) + 1
-        self._detect_features(self.prev_gray, len(self.is_kf) - 1)
+        self._keyframe_features(len(self.is_kf) - 1, self.p_track[-1], self.prev_gray)
 
-    def _detect_features(self, gray: np.ndarray, row: int) -> None:
-        """ORB keypoints of a full-resolution frame (KLT-like precision; the work image halves it)."""
+    def _keyframe_features(self, row: int, ids: np.ndarray, gray: np.ndarray, broken: bool = False) -> None:
+        """ORB keypoints on the keyframes within `features.window` of a weak KLT link (a break, or few
+        tracks shared with the last keyframe), and only there: a video that KLT follows throughout pays
+        nothing. The last `window` keyframe images are kept for this. Full-resolution keypoints: on the
+        work image their precision halves (KITTI: 0.104 vs 0.069 m ATE)."""
         if self.orb is None:
             return
-        uv, desc = self.orb.detect(gray)
-        self.feats.add(row, self.und.points(uv), desc)
+        cfg = self.config.features
+        recent = self._recent_kf
+        weak = bool(recent) and (broken or len(np.intersect1d(recent[-1][1], ids)) < cfg.weak_link_tracks)
+        recent.append([row, ids.copy(), gray, False])
+        if weak:
+            self._describe_next = cfg.window
+        elif self._describe_next > 0:
+            self._describe_next -= 1
+        else:
+            return
+        for kf in recent if weak else (recent[-1],):
+            if not kf[3]:
+                uv, desc = self.orb.detect(kf[2])
+                self.feats.add(kf[0], self.und.points(uv), desc)
+                kf[3] = True
 
     def frame(self, frame: Frame, pool: ThreadPoolExecutor | None) -> str:
         """Process one decoded frame; returns a progress message."""
@@ -360,7 +379,7 @@ class _Run:
             self.pd_desc.append(pdesc)
             self.ld_row.append(self.n_lines + _positions(lines.ids, lids))
             self.ld_desc.append(ldesc)
-            self._detect_features(gray, row)
+            self._keyframe_features(row, points.ids, gray, broken)
         clock.lap("descriptors")
         self.frame_index.append(frame.index)
         self.timestamps.append(frame.timestamp_s)
