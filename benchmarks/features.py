@@ -1,0 +1,106 @@
+"""Which keypoints bridge a wide baseline: verified matches between neighbouring images and time.
+
+For each real sequence in ../shared/data/real (every --step-th image), each detector's keypoints are
+matched between neighbours (Lowe ratio 0.8) and verified by an essential matrix (USAC, 2 px); the
+table gives the verified matches (minimum and median over the pairs) and the milliseconds per image
+for detection and per pair for matching plus verification. Writes benchmarks/results/features.json.
+
+    .venv/bin/python benchmarks/features.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from machine import machine_info
+
+from papl_mapper.frontend.camera import read_camera_file
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "real"
+OUT = ROOT / "benchmarks" / "results" / "features.json"
+
+
+def _klt_corners_orb(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frontend's keyframe descriptors: fixed-size ORB on Shi-Tomasi corners."""
+    c = cv2.goodFeaturesToTrack(gray, 400, 0.01, 15, blockSize=3).reshape(-1, 2)
+    kps, desc = cv2.ORB_create(edgeThreshold=15, patchSize=15).compute(
+        gray, [cv2.KeyPoint(float(x), float(y), 15.0) for x, y in c]
+    )
+    return np.array([k.pt for k in kps], np.float32), desc
+
+
+def _detector(det: cv2.Feature2D):
+    def run(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        kps, desc = det.detectAndCompute(gray, None)
+        return np.array([k.pt for k in kps], np.float32), desc
+
+    return run
+
+
+DETECTORS = {
+    "orb_on_klt_corners": (_klt_corners_orb, cv2.NORM_HAMMING),
+    "orb_1500_fast20": (_detector(cv2.ORB_create(1500)), cv2.NORM_HAMMING),
+    "orb_1500_fast5": (_detector(cv2.ORB_create(1500, fastThreshold=5)), cv2.NORM_HAMMING),
+    "sift_1500": (_detector(cv2.SIFT_create(1500)), cv2.NORM_L2),
+}
+
+
+def _verified(a, b, norm, K) -> int:
+    knn = cv2.BFMatcher(norm).knnMatch(a[1], b[1], k=2)
+    m = [p[0] for p in knn if len(p) == 2 and p[0].distance < 0.8 * p[1].distance]
+    if len(m) < 8:
+        return 0
+    pa = a[0][[x.queryIdx for x in m]]
+    pb = b[0][[x.trainIdx for x in m]]
+    cv2.setRNGSeed(0)
+    E, mask = cv2.findEssentialMat(pa, pb, K, cv2.USAC_FAST, 0.999, 2.0)
+    return 0 if mask is None else int(mask.sum())
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--step", type=int, default=1)
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+    rows = []
+    print(f"{'sequence':24} {'detector':20} {'min':>5} {'median':>6} {'detect ms':>9} {'match ms':>8}")
+    for seq in sorted(p for p in args.data.iterdir() if (p / "images").is_dir()):
+        cam_file = next((seq / n for n in ("camera.json", "calib.txt") if (seq / n).exists()), None)
+        K = read_camera_file(cam_file).K
+        images = sorted(p for p in (seq / "images").iterdir() if p.suffix in (".png", ".jpg"))[:: args.step]
+        grays = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in images[:30]]
+        for name, (detect, norm) in DETECTORS.items():
+            t0 = time.perf_counter()
+            feats = [detect(g) for g in grays]
+            t1 = time.perf_counter()
+            verified = [_verified(feats[i], feats[i + 1], norm, K) for i in range(len(feats) - 1)]
+            t2 = time.perf_counter()
+            row = {
+                "sequence": seq.name,
+                "detector": name,
+                "verified_min": min(verified),
+                "verified_median": float(np.median(verified)),
+                "detect_ms_per_image": 1000 * (t1 - t0) / len(feats),
+                "match_verify_ms_per_pair": 1000 * (t2 - t1) / len(verified),
+            }
+            rows.append(row)
+            print(
+                f"{seq.name:24} {name:20} {row['verified_min']:5d} {row['verified_median']:6.0f} "
+                f"{row['detect_ms_per_image']:9.1f} {row['match_verify_ms_per_pair']:8.1f}"
+            )
+    args.out.write_text(
+        json.dumps({"benchmark": "features", "rows": rows, "machine": machine_info()}, indent=1)
+    )
+    print("wrote", args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
