@@ -24,15 +24,23 @@ ray = pytest.importorskip("ray", reason="Ray is not installed (pip install '.[ra
 
 
 @pytest.fixture(scope="module")
-def head():
+def head(tmp_path_factory):
     from papl_mapper.pipelines.batch_ray import LocalRayHead
 
+    # a ~/.ray/auth_token left by an earlier local `ray.init()` makes Ray 2.60 clients authenticate
+    # against this token-less head and fail ("Unauthenticated"): head and clients get a clean HOME
+    home = os.environ.get("HOME")
+    os.environ["HOME"] = str(tmp_path_factory.mktemp("ray_home"))
     h = LocalRayHead(num_cpus=2)
     h.start()
     try:
         yield h
     finally:
         h.stop()
+        if home is None:
+            os.environ.pop("HOME", None)
+        else:
+            os.environ["HOME"] = home
     assert not h.session_pids()
 
 
