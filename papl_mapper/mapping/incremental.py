@@ -20,6 +20,7 @@ from papl_mapper.geometry.se3 import invert, rotation_angle_deg, similarity_T_cw
 from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions
+from papl_mapper.mapping.registration_lines import RegistrationLines, RegistrationLinesConfig
 from papl_mapper.mapping.relative_pose import RelativePoseConfig, register_relative
 from papl_mapper.mapping.revisit import Revisit, RevisitConfig, TrackIndex, close_loop, find_revisit
 from papl_mapper.mapping.rotation_only import RotationOnlyConfig, rotation_only_recording
@@ -74,6 +75,8 @@ class IncrementalConfig:
     """Lowe ratio for matching keyframe ORB descriptors between tracking segments."""
     merge_tolerance: float = 0.05
     """Largest point disagreement after the Sim(3), as a fraction of the map's median point spread."""
+    track_lines: RegistrationLinesConfig = field(default_factory=RegistrationLinesConfig)
+    """Line tracks triangulated from the keyframes so far refine each frame's pose with the points."""
 
 
 @dataclass
@@ -278,6 +281,7 @@ def _extend(
     rc = cfg.pnp.refine
     use_dirs = rc.enabled and rc.directions and rc.in_registration
     dirs = RegistrationDirections(tracks, vertical_only=rc.vertical_only) if use_dirs else None
+    lines = RegistrationLines(tracks, cfg.track_lines) if cfg.track_lines.enabled else None
     rows = PointRows(tracks)
     f = f1
     for f in range(f1 + 1, len(tracks)):
@@ -285,7 +289,7 @@ def _extend(
             last_T = reg.T_cw[f2]
             last_keyframe = f2
             continue
-        res, n_tracks = _pnp(tracks, reg, f, last_T, cfg, dirs)
+        res, n_tracks = _pnp(tracks, reg, f, last_T, cfg, dirs, lines)
         if (res is None or not res.ok) and cfg.relative_pose.enabled:
             # too few mapped points (a wide baseline): the step from the last keyframe, scaled by them
             rel = register_relative(
@@ -331,7 +335,7 @@ def _extend(
             progress(f + 1, len(tracks), f"{len(reg.frames)} keyframes, {len(reg.points_w)} points")
     # frames between the segment's start and its initialisation pair are tracked backwards
     for g in range(f1 - 1, start - 1, -1):
-        res, _ = _pnp(tracks, reg, g, reg.T_cw[min(reg.T_cw)], cfg, dirs)
+        res, _ = _pnp(tracks, reg, g, reg.T_cw[min(reg.T_cw)], cfg, dirs, lines)
         if res is None or not res.ok:
             break
         reg.T_cw[g] = res.T_cw
@@ -428,6 +432,7 @@ def _pnp(
     guess: np.ndarray,
     cfg: IncrementalConfig,
     dirs: RegistrationDirections | None = None,
+    lines: RegistrationLines | None = None,
 ) -> tuple[PnPResult | None, int]:
     """PnP of frame f against the points mapped so far; None when too few of them are seen."""
     ids, uv = tracks.points_in(f)
@@ -435,8 +440,12 @@ def _pnp(
     if known.sum() < cfg.pnp.min_inliers:
         return None, len(ids)
     X = np.stack([reg.points_w[int(t)] for t in ids[known]])
+    # the line tracks the keyframes so far triangulate hold the pose where points are few
+    lines_w, line_xy, _ = lines.frame_lines(f, reg.T_cw) if lines is not None else (None, None, None)
+    pnp = cfg.pnp if lines is None else lines.pnp_config(cfg.pnp)
     if dirs is None:
-        return track_pnp(X, uv[known], tracks.camera.K, guess, cfg.pnp), len(ids)
+        res = track_pnp(X, uv[known], tracks.camera.K, guess, pnp, lines_w=lines_w, line_xy=line_xy)
+        return res, len(ids)
     # the vanishing directions of the keyframes so far hold the rotation where points are weak
     dirs_w, sigma = dirs(reg.T_cw)
     res = track_pnp(
@@ -444,7 +453,9 @@ def _pnp(
         uv[known],
         tracks.camera.K,
         guess,
-        cfg.pnp,
+        pnp,
+        lines_w=lines_w,
+        line_xy=line_xy,
         dirs_w=dirs_w,
         dirs_c=frame_directions(tracks, f),
         dirs_sigma_deg=sigma,

@@ -90,6 +90,11 @@ class PoseRefineConfig:
     """A camera vanishing direction matches the nearest world direction within this angle."""
     min_line_norm: float = 1e-3
     """Lines whose image is this close to degenerate (through the camera centre) are left out."""
+    lines_below_inliers: int = 0
+    """Use the lines only for poses with fewer PnP inliers than this (0: always; `track_pnp`)."""
+    line_gate_px: float = 0.0
+    """Lines with an observed endpoint farther than this from their projection under the initial pose
+    are left out (a wrong track or a badly triangulated line; 0 keeps every line)."""
     iterations: int = 10
     """Most Levenberg-Marquardt iterations."""
     step_tol: float = 1e-8
@@ -292,6 +297,9 @@ def refine_pose(
         line_xy = np.asarray(line_xy, np.float64).reshape(-1, 4)
         L_c = plucker_to_camera(L_w, invert(T0))
         keep = projected_line_norm(K, L_c) > cfg.min_line_norm
+        if cfg.line_gate_px > 0:
+            with np.errstate(invalid="ignore"):
+                keep &= np.abs(endpoint_errors(K, L_c, line_xy)).max(axis=1) <= cfg.line_gate_px
         L_w, line_xy = L_w[keep], line_xy[keep]
     else:
         L_w, line_xy = np.zeros((0, 6)), np.zeros((0, 4))

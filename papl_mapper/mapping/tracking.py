@@ -109,6 +109,7 @@ def track_pnp(
     stats = None
     rc = cfg.refine
     has_lines = rc.lines and lines_w is not None and line_xy is not None and len(lines_w) > 0
+    has_lines = has_lines and (rc.lines_below_inliers <= 0 or int(mask.sum()) < rc.lines_below_inliers)
     has_dirs = rc.directions and dirs_w is not None and dirs_c is not None and len(dirs_w) > 0
     weak = rc.directions_below_inliers <= 0 or int(mask.sum()) < rc.directions_below_inliers
     if has_dirs and weak and rc.directions_above_rotation_std_deg > 0:
