@@ -6,24 +6,15 @@ import numpy as np
 import pytest
 
 from papl_mapper.errors import UnmappableError
-from papl_mapper.geometry.se3 import bearings, rotation_angle_deg, rotation_from_bearings, so3_exp
+from papl_mapper.geometry.se3 import bearings, rotation_angle_deg, rotation_between_rays, so3_exp
 from papl_mapper.map import Camera
 from papl_mapper.mapping.incremental import register_keyframes
 from papl_mapper.mapping.initialise import initialise_two_view
 from papl_mapper.mapping.rotation_only import RotationOnlyConfig, fill_rotation_only
 from papl_mapper.tracks import Tracks
+from tests.test_mapping_incremental import _look_T_cw
 
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
-
-
-def _look_T_cw(centre: np.ndarray, yaw: float) -> np.ndarray:
-    fwd = np.array([np.cos(yaw), np.sin(yaw), 0.0])
-    down = np.array([0.0, 0.0, -1.0])
-    R_wc = np.column_stack([np.cross(down, fwd), down, fwd])
-    T = np.eye(4)
-    T[:3, :3] = R_wc.T
-    T[:3, 3] = -R_wc.T @ centre
-    return T
 
 
 def _room_tracks(T_cw: np.ndarray, noise_px: float = 0.0, seed: int = 0) -> Tracks:
@@ -63,13 +54,13 @@ def _pan(n: int, degrees: float, centre=(0.5, -0.3, 0.0)) -> np.ndarray:
     return np.stack([_look_T_cw(np.array(centre), y) for y in yaws])
 
 
-def test_rotation_from_bearings_recovers_a_known_rotation_with_outliers():
+def test_rotation_between_rays_recovers_a_known_rotation_with_outliers():
     rng = np.random.default_rng(1)
     b1 = bearings(rng.uniform(-0.6, 0.6, (300, 2)))
     R = so3_exp(np.array([0.05, -0.2, 0.1]))
     b2 = b1 @ R.T
     b2[:30] = bearings(rng.uniform(-0.6, 0.6, (30, 2)))  # 10% wrong matches
-    R_est, err = rotation_from_bearings(b1, b2)
+    R_est, err = rotation_between_rays(b1, b2)
     assert rotation_angle_deg(R_est, R) < 1e-6
     assert np.median(err) < 1e-6 and (err[:30] > 1.0).all()
 

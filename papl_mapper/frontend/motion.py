@@ -9,6 +9,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from papl_mapper.geometry.se3 import kabsch_rotation
+
 
 def common_points(
     ids_a: np.ndarray, uv_a: np.ndarray, ids_b: np.ndarray, uv_b: np.ndarray
@@ -77,9 +79,7 @@ def rotation_from_bearings(
     c = scale_px / K[0, 0]  # residual scale in radians
     R = np.eye(3)
     for _ in range(iterations):
-        U, _, Vt = np.linalg.svd((b * w[:, None]).T @ a)
-        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-        R = U @ D @ Vt
+        R = kabsch_rotation(a, b, w)
         r = np.linalg.norm(b - a @ R.T, axis=1)
         w = 1.0 / (1.0 + (r / c) ** 2)  # Cauchy weights
     return R

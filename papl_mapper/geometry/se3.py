@@ -123,7 +123,19 @@ def bearings(x: np.ndarray) -> np.ndarray:
     return b / np.linalg.norm(b, axis=1, keepdims=True)
 
 
-def rotation_from_bearings(
+def kabsch_rotation(a: np.ndarray, b: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """The rotation R minimising the (weighted) sum of |b_i - R a_i|^2 over rows of (N, 3) vectors."""
+    M = (b if weights is None else b * weights[:, None]).T @ a
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+def ray_angles_deg(a: np.ndarray, b: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """(N,) angle (deg) between each unit ray b_i and R a_i."""
+    return np.degrees(np.arccos(np.clip(np.sum(b * (a @ R.T), axis=1), -1.0, 1.0)))
+
+
+def rotation_between_rays(
     b1: np.ndarray, b2: np.ndarray, iterations: int = 3
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rotation R_21 (b2 ~ R_21 b1) of a camera turning in place, and each ray pair's residual angle (deg).
@@ -134,12 +146,11 @@ def rotation_from_bearings(
     """
     keep = np.ones(len(b1), bool)
     R = np.eye(3)
+    err = ray_angles_deg(b1, b2, R)
     for _ in range(iterations):
         if keep.sum() < 3:
             break
-        U, _, Vt = np.linalg.svd(b2[keep].T @ b1[keep])
-        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        err = np.degrees(np.arccos(np.clip(np.sum(b2 * (b1 @ R.T), axis=1), -1.0, 1.0)))
+        R = kabsch_rotation(b1[keep], b2[keep])
+        err = ray_angles_deg(b1, b2, R)
         keep = err <= 3.0 * max(float(np.median(err)), 1e-6)
-    err = np.degrees(np.arccos(np.clip(np.sum(b2 * (b1 @ R.T), axis=1), -1.0, 1.0)))
     return R, err

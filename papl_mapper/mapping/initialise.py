@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from papl_mapper.geometry.se3 import bearings, rotation_angle_deg, rotation_from_bearings
+from papl_mapper.geometry.se3 import bearings, rotation_angle_deg, rotation_between_rays
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +196,7 @@ def initialise_two_view(
     if max(n_e, n_h) < cfg.min_inliers:
         return InitResult(False, f"no model with {cfg.min_inliers} inliers (E: {n_e}, H: {n_h})")
     inl = (mask_e if n_e >= n_h else mask_h).ravel().astype(bool)
-    R_rot, rot_err = rotation_from_bearings(bearings(x1[inl]), bearings(x2[inl]))
+    R_rot, rot_err = rotation_between_rays(bearings(x1[inl]), bearings(x2[inl]))
     rot_median = float(np.median(rot_err))
     if rot_median < cfg.rotation_parallax_deg:
         return InitResult(

@@ -3,7 +3,7 @@
 A hand-held recording often starts by standing and panning, or turns in place where nothing is
 mapped yet. Such frames have no baseline, so no structure may come from them, but their orientation
 is well defined: the rotation that maps the rays of the point tracks they share with a posed frame
-(`rotation_from_bearings`), accepted only where it explains those rays to `max_residual_deg`, that
+(`rotation_between_rays`), accepted only where it explains those rays to `max_residual_deg`, that
 is where no parallax is left. The camera centre stays at the posed frame's. The anchor moves on to
 the newest frame so posed while the rotation phase lasts; a frame that translated shows parallax
 against its anchor and ends the chain, so positions are never frozen over a walk.
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from papl_mapper.geometry.se3 import bearings, rotation_from_bearings
+from papl_mapper.geometry.se3 import bearings, rotation_between_rays
 from papl_mapper.tracks import Tracks
 
 
@@ -46,7 +46,7 @@ def rotation_pose(
     focal = np.array([K[0, 0], K[1, 1]])
     b_f = bearings((uv_f[i_f] - K[:2, 2]) / focal)
     b_g = bearings((uv_g[i_g] - K[:2, 2]) / focal)
-    R_fg, err = rotation_from_bearings(b_g, b_f)
+    R_fg, err = rotation_between_rays(b_g, b_f)
     if float(np.median(err)) > cfg.max_residual_deg:
         return None, len(i_f)
     T = np.eye(4)
