@@ -45,6 +45,7 @@ from typing import Any
 
 from papl_mapper.pipelines.batch_index import write_index
 from papl_mapper.pipelines.batch_inputs import Recording, assign_names, collect
+from papl_mapper.pipelines.logfile import close_log, file_log
 
 from papl_mapper import __version__
 from papl_mapper.atomic import atomic_path
@@ -401,22 +402,6 @@ def thread_limits(threads: int) -> Iterator[None]:
         cv2.setNumThreads(before)
 
 
-def file_log(path: Path, mode: str) -> logging.Handler:
-    """A log file on the papl_mapper logger keeping INFO and above (as `papl-map run` writes log.txt)."""
-    logger = logging.getLogger("papl_mapper")
-    handler = logging.FileHandler(path, mode=mode)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    handler.setLevel(min(logger.getEffectiveLevel(), logging.INFO))
-    logger.setLevel(handler.level)
-    logger.addHandler(handler)
-    return handler
-
-
-def _close_log(handler: logging.Handler) -> None:
-    logging.getLogger("papl_mapper").removeHandler(handler)
-    handler.close()
-
-
 def write_extras(out: Path, m, cfg, gt: Path | None, render: bool, report: bool) -> list[str]:
     """The exports, eval.json, previews and report.html `papl-map run` writes for these options;
     returns the files written (relative to `out`)."""
@@ -498,7 +483,7 @@ def run_job(spec: dict[str, Any]) -> Row:
                 max_size=job.max_size,
                 resume=job.resume,
             )
-            _close_log(handler)
+            close_log(handler)
             os.replace(running_log, out / "log.txt")
             handler = file_log(out / "log.txt", "a")
             stage = "writing the exports, evaluation, previews or report"
@@ -532,7 +517,7 @@ def run_job(spec: dict[str, Any]) -> Row:
         if handler is not None:
             if row["status"] != "ok" and row.get("error"):
                 logging.getLogger("papl_mapper").error("batch: %s: %s", row["status"], row["error"])
-            _close_log(handler)
+            close_log(handler)
     row["wall_s"] = round(time.perf_counter() - t0, 3)
     row["peak_rss_mib"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     row["key"] = key

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 from papl_mapper.cli.progress import progress_bar
 from papl_mapper.config import load_config
 from papl_mapper.errors import InputError
+from papl_mapper.pipelines.logfile import close_log, file_log
 
 if TYPE_CHECKING:
     from papl_mapper.pipelines.run import RunInterrupted
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     # replaces log.txt when the run's outputs are written, so log.txt always belongs to map.papl
     running_log = args.out / ".checkpoint" / "log.txt"
     running_log.parent.mkdir(parents=True, exist_ok=True)
-    handler = _file_log(running_log, "a" if args.resume else "w")
+    handler = file_log(running_log, "a" if args.resume else "w")
     try:
         result = run_pipeline(
             args.recording,
@@ -103,10 +104,9 @@ def run(args: argparse.Namespace) -> int:
         print(message, file=sys.stderr)
         return 130
     finally:
-        log.removeHandler(handler)
-        handler.close()
+        close_log(handler)
     os.replace(running_log, args.out / "log.txt")
-    handler = _file_log(args.out / "log.txt", "a")  # exports, previews and the report log there too
+    handler = file_log(args.out / "log.txt", "a")  # exports, previews and the report log there too
     try:
         _finish(args, cfg, result)
     except KeyboardInterrupt:
@@ -117,19 +117,8 @@ def run(args: argparse.Namespace) -> int:
         )
         return 130
     finally:
-        log.removeHandler(handler)
-        handler.close()
+        close_log(handler)
     return 0
-
-
-def _file_log(path: Path, mode: str) -> logging.Handler:
-    """A log file handler on the papl_mapper logger that keeps the whole story (INFO) even when quiet."""
-    handler = logging.FileHandler(path, mode=mode)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    handler.setLevel(min(log.getEffectiveLevel(), logging.INFO))
-    log.setLevel(handler.level)
-    log.addHandler(handler)
-    return handler
 
 
 def _interrupted(exc: RunInterrupted, out: Path) -> str:
