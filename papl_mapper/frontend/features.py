@@ -16,7 +16,6 @@ detection time (benchmarks/features.py).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -75,10 +74,6 @@ class KeyframeFeatures:
         self.uv.append(np.asarray(uv, np.float64).reshape(-1, 2))
         self.desc.append(np.asarray(desc, np.uint8).reshape(-1, 32))
 
-    def frames(self) -> np.ndarray:
-        """Frame rows that have keypoints, ascending."""
-        return np.unique(np.concatenate(self.frame)) if self.frame else np.zeros(0, np.int64)
-
 
 class OrbDetector:
     """Oriented multi-scale ORB keypoints and descriptors of one gray image."""
@@ -102,7 +97,6 @@ class FeatureTracks:
     track: np.ndarray  # (K,) int64 track ids (from `first_id`)
     uv: np.ndarray  # (K, 2) undistorted pixels
     desc: np.ndarray  # (K, 32) uint8, the descriptor of each observation
-    pairs_matched: int = 0
     pairs_verified: int = 0
 
 
@@ -170,11 +164,15 @@ def candidate_pairs(keyframes: np.ndarray, weak: np.ndarray, cfg: FeatureConfig)
 def weak_links(
     point_frame: np.ndarray, point_track: np.ndarray, keyframes: np.ndarray, min_shared: int
 ) -> np.ndarray:
-    """(len(keyframes) - 1,) True where consecutive keyframes share fewer than `min_shared` tracks."""
+    """(len(keyframes) - 1,) True where consecutive keyframes share fewer than `min_shared` tracks.
+
+    `point_frame` is in frame order (as the frontend writes it), so each frame's rows are one slice.
+    """
     weak = np.zeros(max(0, len(keyframes) - 1), bool)
+    bounds = np.searchsorted(point_frame, np.stack([keyframes, keyframes + 1]))
     prev = None
-    for i, f in enumerate(keyframes.tolist()):
-        ids = point_track[point_frame == f]
+    for i, (lo, hi) in enumerate(bounds.T.tolist()):
+        ids = point_track[lo:hi]
         if prev is not None:
             weak[i - 1] = len(np.intersect1d(prev, ids)) < min_shared
         prev = ids
@@ -259,7 +257,7 @@ def feature_tracks(
         costs.append(dist[ok])
     if not edges:
         log.debug("features: %d keyframe pairs matched, none verified", len(pairs))
-        return dataclasses.replace(empty, pairs_matched=len(pairs))
+        return empty
     label = chain_tracks(node_frame, np.concatenate(edges), np.concatenate(costs))
     keep = label >= 0
     log.debug(
@@ -274,6 +272,5 @@ def feature_tracks(
         track=label[keep] + first_id,
         uv=node_uv[keep],
         desc=node_desc[keep],
-        pairs_matched=len(pairs),
         pairs_verified=verified,
     )

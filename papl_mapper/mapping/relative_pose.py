@@ -99,7 +99,7 @@ def register_relative(
     return PnPResult(
         True,
         T_cw=T_cw,
-        inliers=inliers[np.isin(id_f, list(points_w))],
+        inliers=inliers[np.array([t in points_w for t in id_f.tolist()], bool)],  # rows of the mapped ids
         rms_px=rms,
         reason=f"relative pose to keyframe {g}: {int(inl.sum())} matches, {int(good.sum())} scale points",
     )
