@@ -368,22 +368,14 @@ def run_colmap(seq: Sequence, out: Path) -> dict[str, dict]:
     )
     shared["extract_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if seq.matching == "sequential":
-        pycolmap.match_sequential(
-            db,
-            matching_options=opts["matching"],
-            pairing_options=opts["sequential"],
-            verification_options=opts["verification"],
-            device=pycolmap.Device.cpu,
-        )
-    else:
-        pycolmap.match_exhaustive(
-            db,
-            matching_options=opts["matching"],
-            pairing_options=opts["exhaustive"],
-            verification_options=opts["verification"],
-            device=pycolmap.Device.cpu,
-        )
+    match = pycolmap.match_sequential if seq.matching == "sequential" else pycolmap.match_exhaustive
+    match(
+        db,
+        matching_options=opts["matching"],
+        pairing_options=opts[seq.matching],
+        verification_options=opts["verification"],
+        device=pycolmap.Device.cpu,
+    )
     shared["match_s"] = time.perf_counter() - t0
     shared["matching"] = seq.matching
     result = {}
