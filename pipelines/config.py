@@ -16,6 +16,7 @@ from papl_mapper.frontend import FrontendConfig
 from papl_mapper.mapping.culling import CullConfig
 from papl_mapper.mapping.incremental import IncrementalConfig
 from papl_mapper.mapping.lines import LineInitConfig
+from papl_mapper.mapping.track_completion import CompletionConfig
 
 
 @dataclass
@@ -53,6 +54,8 @@ class RunConfig:
     cull: CullConfig = field(default_factory=lambda: CullConfig(enabled=False))
     """Redundant keyframe culling after registration. Off: it halves keyframes and BA memory on a 60 s
     720p walk (1298 -> 721, 1.88 -> 0.93 GiB) but moved the 10 s Atlanta walk from 0.29% to 0.90% of path."""
+    completion: CompletionConfig = field(default_factory=CompletionConfig)
+    """Track merging, completion and retriangulation after the points-only BA (then BA again)."""
     lines: LineInitConfig = field(default_factory=LineInitConfig)
     """Line triangulation (the temporary-vanishing-point stage for structural lines)."""
     axes: AxesConfig = field(default_factory=AxesConfig)
