@@ -58,6 +58,7 @@ from papl_mapper.mapping.rotation_only import fill_rotation_only
 from papl_mapper.mapping.structure import find_structure, line_weights
 from papl_mapper.mapping.tracking import track_pnp
 from papl_mapper.mapping.windowed import WindowedRefiner
+from papl_mapper.scale import scale_from_config
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -198,6 +199,8 @@ def run(
                 "timings_s": timer.times,
             }
         )
+        with timer.stage("scale"):
+            m = scale_from_config(m, cfg.scale, rec.frames)
         with timer.stage("trajectory"):
             traj = frame_trajectory(tracks, m, cfg)
         summary = {

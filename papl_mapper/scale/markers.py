@@ -1,0 +1,200 @@
+"""Scale from fiducial markers of known size: ArUco corners detected in the keyframes, triangulated
+from the keyframe poses, the scale the known side length over the triangulated one.
+
+A spec reads `aruco:DICT:ID=SIZE_M` (e.g. `aruco:4X4_50:7=0.2`, the side of the black square in
+metres). Views at a grazing angle to the marker's plane and views whose corners reproject badly are
+left out before the final triangulation; the uncertainty is the jackknife over the views combined
+with the spread of the square's four sides and two diagonals.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from papl_mapper.errors import InputError
+from papl_mapper.geometry import triangulate_points
+from papl_mapper.geometry.se3 import project_points
+from papl_mapper.map import Map
+
+from .estimate import ScaleEstimate
+
+log = logging.getLogger(__name__)
+
+#: ArUco dictionary names as users write them (upper case, without DICT_) -> OpenCV's constant
+DICTIONARIES: dict[str, int] = {
+    n[5:].upper(): getattr(cv2.aruco, n) for n in dir(cv2.aruco) if n.startswith("DICT_")
+}
+
+
+@dataclass(frozen=True)
+class MarkerSpec:
+    """One fiducial marker: its ArUco dictionary, id and side length in metres."""
+
+    dictionary: str  # e.g. "4X4_50"
+    marker_id: int
+    size_m: float
+
+    @property
+    def label(self) -> str:
+        return f"marker aruco:{self.dictionary}:{self.marker_id}={self.size_m:g}"
+
+
+def parse_marker_spec(text: str) -> MarkerSpec:
+    """`aruco:DICT:ID=SIZE_M` -> MarkerSpec; InputError naming --marker and the fault."""
+    where = f"--marker {text!r}"
+    kind, sep, rest = text.partition(":")
+    if not sep or kind.lower() != "aruco":
+        raise InputError(f"{where}: expected aruco:DICT:ID=SIZE_M, e.g. aruco:4X4_50:7=0.2")
+    name, sep, rest = rest.partition(":")
+    if not sep:
+        raise InputError(f"{where}: expected aruco:DICT:ID=SIZE_M, e.g. aruco:4X4_50:7=0.2")
+    key = name.upper().removeprefix("DICT_")
+    if key not in DICTIONARIES:
+        raise InputError(
+            f"{where}: unknown ArUco dictionary {name!r}; known: {', '.join(sorted(DICTIONARIES))}"
+        )
+    id_text, sep, size_text = rest.partition("=")
+    try:
+        marker_id = int(id_text)
+        size = float(size_text)
+    except ValueError:
+        raise InputError(f"{where}: ID must be an integer and SIZE_M a number of metres") from None
+    if not sep or not (math.isfinite(size) and size > 0):
+        raise InputError(f"{where}: SIZE_M must be a positive side length in metres")
+    n_ids = cv2.aruco.getPredefinedDictionary(DICTIONARIES[key]).bytesList.shape[0]
+    if not 0 <= marker_id < n_ids:
+        raise InputError(f"{where}: dictionary {key} has ids 0..{n_ids - 1}, not {marker_id}")
+    return MarkerSpec(key, marker_id, size)
+
+
+def keyframe_images(frames: Iterable, m: Map) -> Iterator[tuple[int, np.ndarray]]:
+    """(keyframe row, image) for every frame (objects with .index and .image) that is a keyframe."""
+    row_of = {int(f): k for k, f in enumerate(m.keyframes.frame_index)}
+    for frame in frames:
+        k = row_of.get(int(frame.index))
+        if k is not None:
+            yield k, frame.image
+
+
+def detect_markers(
+    images: Iterable[tuple[int, np.ndarray]], specs: list[MarkerSpec]
+) -> dict[MarkerSpec, list[tuple[int, np.ndarray]]]:
+    """For each spec, the (keyframe row, corners (4, 2) pixels) of every image it is detected in."""
+    detectors = {}
+    for name in {s.dictionary for s in specs}:
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        detectors[name] = cv2.aruco.ArucoDetector(
+            cv2.aruco.getPredefinedDictionary(DICTIONARIES[name]), params
+        )
+    found: dict[MarkerSpec, list[tuple[int, np.ndarray]]] = {s: [] for s in specs}
+    for row, image in images:
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        for name, det in detectors.items():
+            corners, ids, _ = det.detectMarkers(gray)
+            if ids is None:
+                continue
+            for c, i in zip(corners, ids.ravel().tolist(), strict=True):
+                for s in specs:
+                    if s.dictionary == name and s.marker_id == i:
+                        found[s].append((row, c.reshape(4, 2).astype(np.float64)))
+    return found
+
+
+def _triangulate(m: Map, rows: np.ndarray, corners_px: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(4, 3) marker corners from views `rows` (V,) with undistorted pixels (V, 4, 2)."""
+    K = m.camera.K
+    T = np.repeat(m.keyframes.T_wc[rows], 4, axis=0)
+    X, ok = triangulate_points(np.tile(np.arange(4), len(rows)), T, K, corners_px.reshape(-1, 2), 4, 0.5)
+    return X, bool(ok.all())
+
+
+def _side_ratios(X: np.ndarray) -> np.ndarray:
+    """(6,) the four sides and the two diagonals over sqrt(2): each an estimate of the side length."""
+    sides = np.linalg.norm(X - np.roll(X, -1, axis=0), axis=1)
+    diag = np.linalg.norm(X[[2, 3]] - X[[0, 1]], axis=1) / math.sqrt(2)
+    return np.concatenate([sides, diag])
+
+
+def marker_scale(
+    m: Map,
+    spec: MarkerSpec,
+    detections: list[tuple[int, np.ndarray]],
+    max_view_angle_deg: float = 75.0,
+    max_reprojection_px: float = 3.0,
+) -> ScaleEstimate:
+    """Scale from one marker's detections; InputError when it is unseen, seen once, or only grazing."""
+    n_kf = len(m.keyframes)
+    if not detections:
+        raise InputError(f"{spec.label}: never detected in the {n_kf} keyframes; check the dictionary and id")
+    rows = np.array([r for r, _ in detections], np.int64)
+    if len(np.unique(rows)) < 2:
+        raise InputError(
+            f"{spec.label}: seen in one keyframe only; it needs two or more views from different places"
+        )
+    cam = m.camera
+    raw = np.stack([c for _, c in detections])  # (V, 4, 2)
+    px = cv2.undistortPoints(raw.reshape(-1, 1, 2), cam.K, np.asarray(cam.distortion), P=cam.K).reshape(
+        raw.shape
+    )
+    X, ok = _triangulate(m, rows, px)
+    if not ok:
+        raise InputError(f"{spec.label}: its views have too little parallax to triangulate its corners")
+    centres = m.keyframes.T_wc[rows, :3, 3]
+    normal = np.cross(X[1] - X[0], X[3] - X[0])
+    normal /= np.linalg.norm(normal)
+    to_cam = centres - X.mean(axis=0)
+    cos = np.abs(to_cam @ normal) / np.linalg.norm(to_cam, axis=1)
+    facing = cos >= math.cos(math.radians(max_view_angle_deg))
+    if facing.sum() < 2:
+        raise InputError(
+            f"{spec.label}: seen only at grazing angles ({int((~facing).sum())} of {len(rows)} views more "
+            f"than {max_view_angle_deg:g} degrees off its normal); film it more face-on"
+        )
+    uv, _ = project_points(cam.K, m.keyframes.T_wc[rows][:, None], X[None])  # (V, 4, 2)
+    err = np.linalg.norm(uv - px, axis=2).max(axis=1)
+    keep = facing & (err <= max(max_reprojection_px, 3 * float(np.median(err[facing]))))
+    if keep.sum() < 2:
+        raise InputError(
+            f"{spec.label}: its corners do not agree between views (reprojection {err.min():.1f} px)"
+        )
+    rows, px = rows[keep], px[keep]
+    X, ok = _triangulate(m, rows, px)
+    if not ok:
+        raise InputError(f"{spec.label}: its face-on views have too little parallax to triangulate it")
+    ratios = _side_ratios(X)
+    side = float(ratios.mean())
+    rel_shape = float(ratios.std(ddof=1) / side / math.sqrt(len(ratios)))
+    rel_jack = 0.0
+    if len(rows) >= 3:
+        sub = []
+        for i in range(len(rows)):
+            Xi, oki = _triangulate(m, np.delete(rows, i), np.delete(px, i, axis=0))
+            if oki:
+                sub.append(_side_ratios(Xi).mean())
+        if len(sub) >= 2:
+            sub = np.array(sub)
+            rel_jack = float(math.sqrt((len(sub) - 1) / len(sub) * ((sub - sub.mean()) ** 2).sum()) / side)
+    log.info(
+        "%s: %d views (%d left out), side %.6g map units", spec.label, len(rows), int((~keep).sum()), side
+    )
+    return ScaleEstimate(
+        spec.size_m / side,
+        math.hypot(rel_shape, rel_jack),
+        "marker",
+        f"ArUco {spec.dictionary} id {spec.marker_id} ({spec.size_m:g} m) in {len(rows)} keyframes",
+        {
+            "dictionary": spec.dictionary,
+            "id": spec.marker_id,
+            "size_m": spec.size_m,
+            "views": int(len(rows)),
+            "views_left_out": int((~keep).sum()),
+            "corners_w": X.tolist(),
+        },
+    )
