@@ -55,6 +55,9 @@ class ExportOptions:
     cad_stray_margin: float = 0.25
     """CAD exports: geometry further outside the structure's 1-99 percentile box than this fraction of
     its diagonal is stray."""
+    elevation_axis: int = 1
+    """Elevation: the horizontal axis (1-based, as in 'horizontal 1') to look along; a file named
+    elevation-K.dxf or .svg sets it to K."""
     keep_stray: bool = False
     """CAD exports: keep stray lines and points (on a STRAY layer that is off) instead of leaving them out."""
 
@@ -67,6 +70,8 @@ class ExportOptions:
             raise ConfigError(
                 f"export option palette: unknown {self.palette!r}; choose one of {sorted(PALETTES)}"
             )
+        if self.elevation_axis < 1:
+            raise ConfigError(f"export option elevation_axis must be >= 1, got {self.elevation_axis}")
         if self.cad_min_observations < 0:
             raise ConfigError(
                 f"export option cad_min_observations must be >= 0, got {self.cad_min_observations}"
