@@ -16,6 +16,7 @@ import numpy as np
 from papl_mapper.errors import ConfigError, MapFormatError
 from papl_mapper.map import Map
 from papl_mapper.palette import PALETTES, UNANCHORED_RGB, axis_colors, axis_names
+from papl_mapper.scale.estimate import units_note
 
 log = logging.getLogger(__name__)
 
@@ -172,15 +173,7 @@ def header_text(text: object, limit: int = 200) -> str:
 
 def scale_note(metadata: dict) -> str:
     """How the map's units were found, as one header-safe line ('arbitrary ...' when unscaled)."""
-    units = str(metadata.get("units", "arbitrary"))
-    rec = metadata.get("scale")
-    if units not in _METERS:
-        return header_text(f"{units} (monocular scale unknown)")
-    if not isinstance(rec, dict):
-        return header_text(f"{units} (given)")
-    sigma = rec.get("rel_sigma")
-    unc = f" +-{100 * float(sigma):.2g}%" if isinstance(sigma, (int, float)) else ""
-    return header_text(f"{units} from {rec.get('description', rec.get('source', '?'))}{unc}")
+    return header_text(units_note(metadata).replace("±", "+-"))
 
 
 def stray_mask(xyz: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:

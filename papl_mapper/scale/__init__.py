@@ -6,7 +6,7 @@ keeps the best-conditioned one; `scale_map` applies it to a map, `rescale_run` t
 
 from .apply import scale_map, scale_trajectory
 from .config import ScaleConfig
-from .estimate import ScaleEstimate, choose
+from .estimate import ScaleEstimate, choose, units_note
 from .floor import Floor, camera_height_scale, fit_floor, up_direction
 from .length import line_length_scale, point_distance_scale
 from .markers import MarkerSpec, detect_markers, keyframe_images, marker_scale, parse_marker_spec
@@ -31,5 +31,6 @@ __all__ = [
     "scale_from_config",
     "scale_map",
     "scale_trajectory",
+    "units_note",
     "up_direction",
 ]

@@ -74,3 +74,17 @@ def choose(estimates: list[ScaleEstimate], max_disagreement_sigma: float = 3.0) 
             best.description, other.description, 100 * apart, best.source,
         )  # fmt: skip
     return best
+
+
+def units_note(metadata: dict[str, Any]) -> str:
+    """The map's units and how they were found, for info, report, previews and file headers:
+    'm from camera height 1.6 m above the floor ±0.2%', or 'arbitrary (monocular scale unknown)'."""
+    units = str(metadata.get("units", "arbitrary"))
+    rec = metadata.get("scale")
+    if units == "arbitrary":
+        return "arbitrary (monocular scale unknown)"
+    if not isinstance(rec, dict):
+        return f"{units} (given)"
+    sigma = rec.get("rel_sigma")
+    unc = f" ±{100 * float(sigma):.2g}%" if isinstance(sigma, (int, float)) else ""
+    return f"{units} from {rec.get('description', rec.get('source', 'an unnamed source'))}{unc}"

@@ -107,6 +107,20 @@ def detect_markers(
     return found
 
 
+def view_angles_deg(corners_px: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(V,) the angle between each view's ray to the marker and the marker's normal, from the planar
+    pose of its four corners (V, 4, 2) alone (IPPE, independent of the map's scale)."""
+    square = np.array([[-0.5, 0.5, 0], [0.5, 0.5, 0], [0.5, -0.5, 0], [-0.5, -0.5, 0]], np.float64)
+    out = np.full(len(corners_px), 90.0)
+    for i, c in enumerate(corners_px):
+        ok, rvec, tvec = cv2.solvePnP(square, c.reshape(4, 1, 2), K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        if ok:
+            normal = cv2.Rodrigues(rvec)[0][:, 2]
+            ray = tvec.ravel() / np.linalg.norm(tvec)
+            out[i] = math.degrees(math.acos(min(1.0, abs(float(normal @ ray)))))
+    return out
+
+
 def _triangulate(m: Map, rows: np.ndarray, corners_px: np.ndarray) -> tuple[np.ndarray, bool]:
     """(4, 3) marker corners from views `rows` (V,) with undistorted pixels (V, 4, 2)."""
     K = m.camera.K
@@ -143,20 +157,16 @@ def marker_scale(
     px = cv2.undistortPoints(raw.reshape(-1, 1, 2), cam.K, np.asarray(cam.distortion), P=cam.K).reshape(
         raw.shape
     )
-    X, ok = _triangulate(m, rows, px)
-    if not ok:
-        raise InputError(f"{spec.label}: its views have too little parallax to triangulate its corners")
-    centres = m.keyframes.T_wc[rows, :3, 3]
-    normal = np.cross(X[1] - X[0], X[3] - X[0])
-    normal /= np.linalg.norm(normal)
-    to_cam = centres - X.mean(axis=0)
-    cos = np.abs(to_cam @ normal) / np.linalg.norm(to_cam, axis=1)
-    facing = cos >= math.cos(math.radians(max_view_angle_deg))
+    angle = view_angles_deg(px, cam.K)
+    facing = angle <= max_view_angle_deg
     if facing.sum() < 2:
         raise InputError(
             f"{spec.label}: seen only at grazing angles ({int((~facing).sum())} of {len(rows)} views more "
             f"than {max_view_angle_deg:g} degrees off its normal); film it more face-on"
         )
+    X, ok = _triangulate(m, rows[facing], px[facing])
+    if not ok:
+        raise InputError(f"{spec.label}: its views have too little parallax to triangulate its corners")
     uv, _ = project_points(cam.K, m.keyframes.T_wc[rows][:, None], X[None])  # (V, 4, 2)
     err = np.linalg.norm(uv - px, axis=2).max(axis=1)
     keep = facing & (err <= max(max_reprojection_px, 3 * float(np.median(err[facing]))))
