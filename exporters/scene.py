@@ -53,9 +53,9 @@ class ExportOptions:
     """COLMAP: image file name pattern, formatted with the keyframe's id and frame_index."""
     cad_min_observations: int = 3
     """CAD exports (DXF, plan, elevation): lines seen in fewer keyframes than this are stray."""
-    cad_stray_margin: float = 0.25
-    """CAD exports: geometry further outside the structure's 1-99 percentile box than this fraction of
-    its diagonal is stray."""
+    cad_stray_margin: float = 3.0
+    """CAD exports: geometry beyond the structure's interquartile box by more than this many times its
+    size (Tukey's far-out fences) is stray."""
     elevation_axis: int = 1
     """Elevation: the horizontal axis (1-based, as in 'horizontal 1') to look along; a file named
     elevation-K.dxf or .svg sets it to K."""
@@ -150,16 +150,17 @@ class ExportScene:
         return _METERS.get(self.units)
 
     def structure_box(self, margin: float) -> tuple[np.ndarray, np.ndarray]:
-        """(lo, hi) of the anchored lines and the trajectory (1-99 percentiles), grown by `margin`
-        times its diagonal: what lies outside is stray for CAD drawings."""
+        """(lo, hi) Tukey fences of the anchored lines and the trajectory: the interquartile box grown by
+        `margin` times its size on each axis (each at least 5% of the largest): what lies outside is
+        stray for CAD drawings. Quartiles, unlike the extremes, ignore a few stray lines far away."""
         parts = [g.segments_w.reshape(-1, 3) for g in self.line_groups if g.axis_index >= 0]
         parts = [p for p in parts if len(p)] or [g.segments_w.reshape(-1, 3) for g in self.line_groups]
         xyz = np.concatenate([*parts, self.trajectory_w, np.zeros((0, 3))])
         if not len(xyz):
             xyz = self.points_xyz if len(self.points_xyz) else np.zeros((1, 3))
-        lo, hi = np.percentile(xyz, [1, 99], axis=0) if len(xyz) >= 100 else (xyz.min(0), xyz.max(0))
-        pad = margin * float(np.linalg.norm(hi - lo))
-        return lo - pad, hi + pad
+        q1, q3 = np.percentile(xyz, [25, 75], axis=0)
+        iqr = np.maximum(q3 - q1, 0.05 * max(float((q3 - q1).max()), 1e-12))
+        return q1 - margin * iqr, q3 + margin * iqr
 
 
 _METERS = {"m": 1.0, "meter": 1.0, "meters": 1.0, "metre": 1.0, "metres": 1.0, "cm": 0.01, "mm": 0.001}
@@ -179,6 +180,8 @@ def scale_note(metadata: dict) -> str:
 def stray_mask(xyz: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """(N,) True where any of the points (N, ..., 3) lies outside the box."""
     lo, hi = box
+    if len(xyz) == 0:
+        return np.zeros(0, bool)
     out = (xyz < lo) | (xyz > hi)
     return out.reshape(len(xyz), -1).any(axis=1)
 

@@ -112,8 +112,15 @@ def _build(scene, options, right, page_up, end_on_axis: int, title: str, **kw) -
     return view
 
 
+def _empty(scene: ExportScene, title: str) -> View:
+    """The view of a map with nothing to draw: a valid drawing holding only its annotations."""
+    return View(title, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), [], scene.units, scene.scale_note)
+
+
 def plan_view(scene: ExportScene, options: ExportOptions) -> View:
     """The plan on the floor plane: north (page up) along the map's first horizontal axis."""
+    if scene.is_empty:
+        return _empty(scene, "plan (empty map)")
     up, horizontal = _up_and_horizontals(scene)
     north = _flat(horizontal[0]["direction"], up)
     east = np.cross(north, up)
@@ -124,6 +131,8 @@ def plan_view(scene: ExportScene, options: ExportOptions) -> View:
 
 def elevation_view(scene: ExportScene, options: ExportOptions, horizontal_number: int = 1) -> View:
     """The elevation seen looking along horizontal axis `horizontal_number` (1-based, as in its name)."""
+    if scene.is_empty:
+        return _empty(scene, "elevation (empty map)")
     up, horizontal = _up_and_horizontals(scene)
     if not 1 <= horizontal_number <= len(horizontal):
         raise InputError(
