@@ -235,7 +235,9 @@ def main() -> int:
     for r in rows:
 
         def f(key: str, r: dict = r) -> str:
-            return f"{r[key]:+.2f}" if key in r else "-"
+            if key not in r:
+                return "-"
+            return f"{r[key]:.2f}" if key.endswith("sigma_pct") else f"{r[key]:+.2f}"
 
         print(
             f"{r['scene']:<9} {r['noise']:>5g} {f('marker_err_pct'):>9} {f('marker_sigma_pct'):>6} "

@@ -66,10 +66,17 @@ def _int(text: str, option: str, whole: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from papl_mapper.map import Map
-    from papl_mapper.scale import ScaleConfig, estimate_scale, line_length_scale, point_distance_scale
+    from papl_mapper.scale import (
+        ScaleConfig,
+        check_config,
+        estimate_scale,
+        line_length_scale,
+        point_distance_scale,
+    )
     from papl_mapper.scale.run_dir import rescale_run, run_map_path
 
     cfg = ScaleConfig(markers=list(args.marker), camera_height=args.camera_height)
+    check_config(cfg)  # a bad --marker or --camera-height is refused before anything is read
     parsed_len = [(_pair(t, "--length"), t) for t in args.length]
     parsed_pts = [(_pair(t, "--points"), t) for t in args.points]
     if not (parsed_len or parsed_pts or cfg.enabled):

@@ -94,9 +94,10 @@ def _level(values: np.ndarray, width: float) -> tuple[float, np.ndarray]:
 def fit_floor(m: Map, min_support: int = 20) -> Floor:
     """The floor under the keyframes; InputError when nothing below the cameras piles up at one level.
 
-    Each keyframe contributes the samples below it within twice the map's reach below the cameras
-    (so that a sloping floor or a road still piles up at one drop); the level is the histogram
-    mode of the pooled drops, with bins a fortieth of that reach.
+    The reach is the 95th percentile of how far the samples lie below the cameras. Each keyframe
+    contributes the samples below it within twice the reach horizontally (so that a sloping floor or
+    road still piles up at one drop); the level is the densest of the pooled drops between 0.6 and
+    1.5 reaches (bins a fortieth of the reach), and must hold three times the walls' density.
     """
     if len(m.keyframes) < 2:
         raise InputError("the map has fewer than 2 keyframes: no camera height to measure")
@@ -111,13 +112,16 @@ def fit_floor(m: Map, min_support: int = 20) -> Floor:
         )
     reach = float(np.percentile(every, 95))
     pooled = np.concatenate(_drops(m, up, 2 * reach))
-    pooled = pooled[pooled >= 0.2 * reach]  # the floor lies well below the cameras
+    # the floor is the lowest thing below the cameras, near the bottom of what the map holds there;
+    # walls at eye level are often denser, so only the lower part of the reach is searched
+    pooled = pooled[(pooled >= 0.6 * reach) & (pooled <= 1.5 * reach)]
     if len(pooled) < min_support:
         raise InputError(f"no floor found: only {len(pooled)} map points lie well below the cameras")
     width = reach / 40
     drop, near = _level(pooled, width)
     # the floor must stand out of the background of wall points spread over every height
-    background = len(pooled) * (3 * width) / max(float(pooled.max() - pooled.min()), 3 * width)
+    counts, _ = np.histogram(pooled, np.arange(0.6 * reach, 1.5 * reach + width, width))
+    background = 3 * float(np.median(counts))  # what three bins of walls alone would hold
     if len(near) < min_support or len(near) < 3 * background:
         raise InputError(
             f"no floor found: no level below the cameras holds more map points than the walls "

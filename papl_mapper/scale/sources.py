@@ -53,7 +53,7 @@ def estimate_scale(
     if not estimates:
         return None
     for e in estimates:
-        log.info("scale from %s: %.6g m/unit (±%.2g%%)", e.description, e.scale, 100 * e.rel_sigma)
+        log.debug("scale from %s: %.6g m/unit (±%.2g%%)", e.description, e.scale, 100 * e.rel_sigma)
     return choose(estimates, cfg.max_disagreement_sigma)
 
 

@@ -1,4 +1,5 @@
-"""ArUco markers of known size stuck on a scene's walls, where the walk sees them face-on from 1-3 m.
+"""ArUco markers of known size stuck on a scene's walls, where the walk sees them face-on from 1-3 m
+(on boards standing beside the walk where no wall comes that close, as in an open plaza).
 
 Each marker is made of plain quads (a white quiet zone 1 mm off the wall, black cells 2 mm off), so
 the renderer draws it like any other surface. Placement is seeded and only adds quads and
@@ -56,22 +57,12 @@ def _candidates(scene: Scene, size: float, height: float) -> list[tuple[np.ndarr
     return out
 
 
-def place_markers(
-    scene: Scene,
-    camera: Camera,
-    T_wc: np.ndarray,
-    count: int,
-    size_m: float,
-    dictionary: str,
-    seed: int,
-) -> tuple[Scene, list[dict]]:
-    """The scene with `count` markers (ids 0..count-1) added, and each marker's ground truth."""
-    rng = np.random.default_rng([seed, 97])
-    frames = T_wc[:: max(1, len(T_wc) // 120)]
+def _score(scene: Scene, camera: Camera, frames: np.ndarray, candidates, size_m: float) -> list[tuple]:
+    """(views, centre, right, outward normal) of the candidates seen whole and unoccluded, face-on from
+    1-3 m, in at least 6 of `frames`."""
     centres_cam = frames[:, :3, 3]
-    height = float(np.median(centres_cam[:, 2])) - 0.15
     scored = []
-    for centre, t in _candidates(scene, size_m, height):
+    for centre, t in candidates:
         n = np.cross(t, [0.0, 0.0, 1.0])
         for n_out in (n, -n):  # a wall is seen from one side, or from both (a partition)
             to_cam = centres_cam - centre
@@ -86,6 +77,51 @@ def place_markers(
             seen = sum(_sees(scene, camera, T, corners) for T in frames[near])
             if seen >= 6:
                 scored.append((seen, centre, right, n_out))
+    return scored
+
+
+def _boards(scene: Scene, T_wc: np.ndarray, height: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(centre, tangent) of free-standing boards 2.5 m ahead of the walk and 1.2 m to its side, in free
+    space at least 0.8 m from every camera position, facing back along the walk."""
+    path = T_wc[:, :3, 3]
+    out = []
+    for T in T_wc[:: max(1, len(T_wc) // 40)]:
+        f = T[:3, 2].copy()
+        f[2] = 0
+        if np.linalg.norm(f) < 1e-6:
+            continue
+        f /= np.linalg.norm(f)
+        side = np.cross([0.0, 0.0, 1.0], f)
+        for sign in (1.0, -1.0):
+            c = T[:3, 3] + 2.5 * f + sign * 1.2 * side
+            c[2] = height
+            if not scene.in_free_space(c[None, :2], margin=0.3)[0]:
+                continue
+            if np.linalg.norm(path[:, :2] - c[:2], axis=1).min() < 0.8:
+                continue
+            n = T[:3, 3] - c
+            n[2] = 0
+            n /= np.linalg.norm(n)
+            out.append((c, np.cross([0.0, 0.0, 1.0], n)))  # tangent: its normal n faces the walker
+    return out
+
+
+def place_markers(
+    scene: Scene,
+    camera: Camera,
+    T_wc: np.ndarray,
+    count: int,
+    size_m: float,
+    dictionary: str,
+    seed: int,
+) -> tuple[Scene, list[dict]]:
+    """The scene with `count` markers (ids 0..count-1) added, and each marker's ground truth."""
+    rng = np.random.default_rng([seed, 97])
+    frames = T_wc[:: max(1, len(T_wc) // 120)]
+    height = float(np.median(frames[:, 2, 3])) - 0.15
+    scored = _score(scene, camera, frames, _candidates(scene, size_m, height), size_m)
+    if len(scored) < count:  # no wall near the walk (an open plaza): boards standing beside it
+        scored += _score(scene, camera, frames, _boards(scene, T_wc, height), size_m)
     if len(scored) < count:
         raise InputError(
             f"scene {scene.name}: only {len(scored)} wall places see the walk face-on for markers"
