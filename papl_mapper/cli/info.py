@@ -20,6 +20,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     m = Map.load(args.map)
     s = m.summary()
+    s["units_note"] = units_note(m.metadata)
+    s["scale"] = m.metadata.get("scale")
     if args.json:
         print(json.dumps(s, indent=2))
         return 0

@@ -2,9 +2,10 @@
 from the keyframe poses, the scale the known side length over the triangulated one.
 
 A spec reads `aruco:DICT:ID=SIZE_M` (e.g. `aruco:4X4_50:7=0.2`, the side of the black square in
-metres). Views at a grazing angle to the marker's plane and views whose corners reproject badly are
-left out before the final triangulation; the uncertainty is the jackknife over the views combined
-with the spread of the square's four sides and two diagonals.
+metres). Views at a grazing angle to the marker's plane (judged from each view's planar pose of the
+square, which needs no scale) and views whose corners reproject badly are left out before the final
+triangulation; the uncertainty is the jackknife over the views combined with the spread of the
+square's four sides and two diagonals.
 """
 
 from __future__ import annotations
