@@ -142,7 +142,8 @@ def marker_scale(
     spec: MarkerSpec,
     detections: list[tuple[int, np.ndarray]],
     max_view_angle_deg: float = 75.0,
-    max_reprojection_px: float = 3.0,
+    max_reprojection_px: float = 2.0,
+    min_side_px: float = 20.0,
 ) -> ScaleEstimate:
     """Scale from one marker's detections; InputError when it is unseen, seen once, or only grazing."""
     n_kf = len(m.keyframes)
@@ -165,20 +166,30 @@ def marker_scale(
             f"{spec.label}: seen only at grazing angles ({int((~facing).sum())} of {len(rows)} views more "
             f"than {max_view_angle_deg:g} degrees off its normal); film it more face-on"
         )
-    X, ok = _triangulate(m, rows[facing], px[facing])
-    if not ok:
-        raise InputError(f"{spec.label}: its views have too little parallax to triangulate its corners")
-    uv, _ = project_points(cam.K, m.keyframes.T_wc[rows][:, None], X[None])  # (V, 4, 2)
-    err = np.linalg.norm(uv - px, axis=2).max(axis=1)
-    keep = facing & (err <= max(max_reprojection_px, 3 * float(np.median(err[facing]))))
+    big = np.linalg.norm(px - np.roll(px, -1, axis=1), axis=2).min(axis=1) >= min_side_px
+    keep = facing & big
     if keep.sum() < 2:
         raise InputError(
-            f"{spec.label}: its corners do not agree between views (reprojection {err.min():.1f} px)"
+            f"{spec.label}: seen face-on in {int(facing.sum())} views, but in all but {int(keep.sum())} "
+            f"its sides are under {min_side_px:g} pixels; film it from closer"
         )
+    # a map that drifts places far-apart views of one marker inconsistently: drop the worst view
+    # until every view reprojects the triangulated corners within max_reprojection_px
+    while True:
+        X, ok = _triangulate(m, rows[keep], px[keep])
+        if not ok:
+            raise InputError(f"{spec.label}: its views have too little parallax to triangulate its corners")
+        uv, _ = project_points(cam.K, m.keyframes.T_wc[rows][:, None], X[None])  # (V, 4, 2)
+        err = np.where(keep, np.linalg.norm(uv - px, axis=2).max(axis=1), -1.0)
+        worst = int(np.argmax(err))
+        if err[worst] <= max_reprojection_px:
+            break
+        if keep.sum() <= 2:
+            raise InputError(
+                f"{spec.label}: its corners do not agree between views (reprojection {err[worst]:.1f} px)"
+            )
+        keep[worst] = False
     rows, px = rows[keep], px[keep]
-    X, ok = _triangulate(m, rows, px)
-    if not ok:
-        raise InputError(f"{spec.label}: its face-on views have too little parallax to triangulate it")
     ratios = _side_ratios(X)
     side = float(ratios.mean())
     rel_shape = float(ratios.std(ddof=1) / side / math.sqrt(len(ratios)))
@@ -192,12 +203,13 @@ def marker_scale(
         if len(sub) >= 2:
             sub = np.array(sub)
             rel_jack = float(math.sqrt((len(sub) - 1) / len(sub) * ((sub - sub.mean()) ** 2).sum()) / side)
+    scale, rel = spec.size_m / side, math.hypot(rel_shape, rel_jack)
     log.info(
         "%s: %d views (%d left out), side %.6g map units", spec.label, len(rows), int((~keep).sum()), side
     )
     return ScaleEstimate(
-        spec.size_m / side,
-        math.hypot(rel_shape, rel_jack),
+        scale,
+        rel,
         "marker",
         f"ArUco {spec.dictionary} id {spec.marker_id} ({spec.size_m:g} m) in {len(rows)} keyframes",
         {
