@@ -199,10 +199,10 @@ def run(
                 "timings_s": timer.times,
             }
         )
-        with timer.stage("scale"):
-            m = scale_from_config(m, cfg.scale, rec.frames)
         with timer.stage("trajectory"):
             traj = frame_trajectory(tracks, m, cfg)
+        with timer.stage("scale"):
+            m, traj = scale_from_config(m, traj, cfg.scale, rec.frames)
         summary = {
             "recording": {
                 "path": str(recording),

@@ -10,9 +10,10 @@ import logging
 from collections.abc import Callable, Iterable
 
 from papl_mapper.errors import InputError
+from papl_mapper.eval.trajectory import Trajectory
 from papl_mapper.map import Map
 
-from .apply import scale_map
+from .apply import scale_map, scale_trajectory
 from .config import ScaleConfig
 from .estimate import ScaleEstimate, choose
 from .floor import camera_height_scale
@@ -57,10 +58,15 @@ def estimate_scale(
     return choose(estimates, cfg.max_disagreement_sigma)
 
 
-def scale_from_config(m: Map, cfg: ScaleConfig, frames: Callable[[], Iterable] | None = None) -> Map:
-    """`m` in metres when `cfg` names a scale source, else `m` itself (arbitrary units)."""
+def scale_from_config(
+    m: Map, traj: Trajectory, cfg: ScaleConfig, frames: Callable[[], Iterable] | None = None
+) -> tuple[Map, Trajectory]:
+    """`m` and its frame trajectory in metres when `cfg` names a scale source, else both as they are.
+
+    Applied after the trajectory is found, so the mapping itself runs in its own units either way.
+    """
     if not cfg.enabled:
-        return m
+        return m, traj
     try:
         est = estimate_scale(m, cfg, frames)
     except InputError as exc:
@@ -69,4 +75,4 @@ def scale_from_config(m: Map, cfg: ScaleConfig, frames: Callable[[], Iterable] |
             "another scale source or none, then `papl-map scale` can add one)"
         ) from exc
     log.info("map scaled to metres by %s: %.6g m per unit", est.description, est.scale)
-    return scale_map(m, est)
+    return scale_map(m, est), scale_trajectory(traj, est.scale)
