@@ -58,7 +58,7 @@ def new_document(scene: ExportScene):
     doc = ezdxf.new("R2010", setup=False)
     mpu = scene.meters_per_unit
     doc.units = {1.0: units.M, 0.01: units.CM, 0.001: units.MM}.get(mpu, 0)  # 0: unitless
-    doc.header["$MEASUREMENT"] = 1 if mpu is not None else 0  # metric drawing when the units are known
+    doc.header["$MEASUREMENT"] = 1  # metric (0 would say imperial; an unscaled map says so in $INSUNITS)
     doc.header["$LUNITS"] = 2  # decimal
     doc.header.custom_vars.append("PAPL_UNITS", scene.units)
     doc.header.custom_vars.append("PAPL_SCALE", scene.scale_note)
