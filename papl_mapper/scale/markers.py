@@ -4,8 +4,10 @@ from the keyframe poses, the scale the known side length over the triangulated o
 A spec reads `aruco:DICT:ID=SIZE_M` (e.g. `aruco:4X4_50:7=0.2`, the side of the black square in
 metres). Views at a grazing angle to the marker's plane (judged from each view's planar pose of the
 square, which needs no scale) and views whose corners reproject badly are left out before the final
-triangulation; the uncertainty is the jackknife over the views combined with the spread of the
-square's four sides and two diagonals.
+triangulation; a square of free pose and side is then fitted to the detections of the kept views
+(known shape: it holds the depth that independently triangulated corners leave loose when the views
+line up with the marker). The uncertainty is the larger of the fit's own and a jackknife over the
+views.
 """
 
 from __future__ import annotations
@@ -130,6 +132,44 @@ def _triangulate(m: Map, rows: np.ndarray, corners_px: np.ndarray) -> tuple[np.n
     return X, bool(ok.all())
 
 
+def fit_square(
+    X0: np.ndarray, T_wc: np.ndarray, K: np.ndarray, corners_px: np.ndarray
+) -> tuple[float, np.ndarray, float]:
+    """(side, corners (4, 3), relative sigma of the side): the square of free pose and side whose
+    corners reproject closest to the detections (V, 4, 2) in the views T_wc (V, 4, 4), from the
+    triangulated corners X0 (4, 3). The known shape holds the depth that four independently
+    triangulated corners leave loose when the views line up with the marker."""
+    from scipy.optimize import least_squares
+
+    x = (X0[1] - X0[0]) + (X0[2] - X0[3])
+    y = (X0[0] - X0[3]) + (X0[1] - X0[2])
+    x /= np.linalg.norm(x)
+    y -= (y @ x) * x
+    y /= np.linalg.norm(y)
+    R0 = np.stack([x, y, np.cross(x, y)], axis=1)
+    unit = np.array([[-0.5, 0.5, 0], [0.5, 0.5, 0], [0.5, -0.5, 0], [-0.5, -0.5, 0]])  # TL, TR, BR, BL
+
+    def corners(p: np.ndarray) -> np.ndarray:
+        R = cv2.Rodrigues(p[3:6])[0] @ R0
+        return p[:3] + math.exp(p[6]) * unit @ R.T
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        uv, _ = project_points(K, T_wc[:, None], corners(p)[None])
+        return (uv - corners_px).ravel()
+
+    side0 = float(_side_ratios(X0).mean())
+    p0 = np.concatenate([X0.mean(axis=0), np.zeros(3), [math.log(side0)]])
+    res = least_squares(residuals, p0, method="lm", x_scale=np.r_[np.full(3, side0), np.ones(3), 1.0])
+    dof = max(res.fun.size - 7, 1)
+    J = res.jac
+    try:
+        cov = np.linalg.inv(J.T @ J) * float(res.fun @ res.fun) / dof
+        rel = math.sqrt(max(float(cov[6, 6]), 0.0))
+    except np.linalg.LinAlgError:
+        rel = float("inf")
+    return math.exp(res.x[6]), corners(res.x), rel
+
+
 def _side_ratios(X: np.ndarray) -> np.ndarray:
     """(6,) the four sides and the two diagonals over sqrt(2): each an estimate of the side length."""
     sides = np.linalg.norm(X - np.roll(X, -1, axis=0), axis=1)
@@ -190,20 +230,15 @@ def marker_scale(
             )
         keep[worst] = False
     rows, px = rows[keep], px[keep]
-    ratios = _side_ratios(X)
-    side = float(ratios.mean())
-    rel_shape = float(ratios.std(ddof=1) / side / math.sqrt(len(ratios)))
+    T = m.keyframes.T_wc[rows]
+    side, X, rel_fit = fit_square(X, T, cam.K, px)
     rel_jack = 0.0
-    if len(rows) >= 3:
-        sub = []
-        for i in range(len(rows)):
-            Xi, oki = _triangulate(m, np.delete(rows, i), np.delete(px, i, axis=0))
-            if oki:
-                sub.append(_side_ratios(Xi).mean())
-        if len(sub) >= 2:
-            sub = np.array(sub)
-            rel_jack = float(math.sqrt((len(sub) - 1) / len(sub) * ((sub - sub.mean()) ** 2).sum()) / side)
-    scale, rel = spec.size_m / side, math.hypot(rel_shape, rel_jack)
+    if len(rows) >= 4:  # how much the side moves when one view is left out: pose errors show here
+        sub = np.array(
+            [fit_square(X, np.delete(T, i, 0), cam.K, np.delete(px, i, 0))[0] for i in range(len(rows))]
+        )
+        rel_jack = math.sqrt((len(sub) - 1) / len(sub) * float(((sub - sub.mean()) ** 2).sum())) / side
+    scale, rel = spec.size_m / side, max(rel_fit, rel_jack)
     log.info(
         "%s: %d views (%d left out), side %.6g map units", spec.label, len(rows), int((~keep).sum()), side
     )
