@@ -16,7 +16,10 @@ class ScaleConfig:
     max_view_angle_deg: float = 75.0
     """Marker views more than this far off the marker's normal are left out as grazing."""
     max_disagreement_sigma: float = 3.0
-    """Two sources further apart than this many combined standard uncertainties are refused."""
+    """Two sources further apart than this many combined standard uncertainties (and than
+    min_disagreement) are refused."""
+    min_disagreement: float = 0.03
+    """Two sources closer than this fraction are never refused (their systematic errors reach it)."""
 
     @property
     def enabled(self) -> bool:

@@ -48,11 +48,15 @@ class ScaleEstimate:
         }
 
 
-def choose(estimates: list[ScaleEstimate], max_disagreement_sigma: float = 3.0) -> ScaleEstimate:
+def choose(
+    estimates: list[ScaleEstimate], max_disagreement_sigma: float = 3.0, min_disagreement: float = 0.03
+) -> ScaleEstimate:
     """The estimate with the smallest relative uncertainty; InputError when two disagree.
 
     Two estimates conflict when their ratio differs from 1 by more than `max_disagreement_sigma`
-    combined relative sigmas (and by more than 1%, so that near-exact sources may still differ a little).
+    combined relative sigmas and by more than `min_disagreement`: the sigmas cover the noise of each
+    source, not its systematic errors (a marker's corners, a camera that is not quite at the height
+    given), which reach a percent or two.
     """
     if not estimates:
         raise InputError("no scale source given")
@@ -61,7 +65,7 @@ def choose(estimates: list[ScaleEstimate], max_disagreement_sigma: float = 3.0) 
         if other is best:
             continue
         apart = abs(other.scale / best.scale - 1.0)
-        tol = max(max_disagreement_sigma * math.hypot(best.rel_sigma, other.rel_sigma), 0.01)
+        tol = max(max_disagreement_sigma * math.hypot(best.rel_sigma, other.rel_sigma), min_disagreement)
         if apart > tol:
             raise InputError(
                 f"conflicting scales: {best.description} gives {best.scale:.6g} m/unit "

@@ -55,7 +55,7 @@ def estimate_scale(
         return None
     for e in estimates:
         log.debug("scale from %s: %.6g m/unit (±%.2g%%)", e.description, e.scale, 100 * e.rel_sigma)
-    return choose(estimates, cfg.max_disagreement_sigma)
+    return choose(estimates, cfg.max_disagreement_sigma, cfg.min_disagreement)
 
 
 def scale_from_config(
