@@ -66,7 +66,9 @@ def test_markers_are_off_by_default_and_validated():
 
 def test_synth_marker_run_is_metric_against_the_truth(tmp_path, capsys):
     rec = tmp_path / "rec"
-    assert main(["synth", "corridor", "--out", str(rec), "--seconds", "5", "--fps", "15", "--markers", "1"]) == 0
+    assert (
+        main(["synth", "corridor", "--out", str(rec), "--seconds", "5", "--fps", "15", "--markers", "1"]) == 0
+    )
     truth = json.loads((rec / "gt" / "markers.json").read_text())
     assert truth[0]["size_m"] == 0.2 and truth[0]["dictionary"] == "4X4_50"
     run = tmp_path / "run"
