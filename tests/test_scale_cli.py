@@ -58,6 +58,20 @@ def test_known_length_rescales_every_output(run_dir: Path, capsys):
     assert "units          m from line 1 of known length 4 m" in capsys.readouterr().out
 
 
+def test_previews_and_report_follow_the_scale(run_dir: Path, capsys):
+    from papl_mapper.gui.preview import PreviewOptions, render_views
+    from papl_mapper.gui.report import write_report
+    from PIL import Image
+
+    render_views(Map.load(run_dir / "map.papl"), run_dir / "previews", PreviewOptions(views=("top",)))
+    write_report(run_dir, run_dir / "report.html")
+    top = np.asarray(Image.open(run_dir / "previews" / "top.png"))
+    assert "arbitrary (monocular scale unknown)" in (run_dir / "report.html").read_text()
+    assert main(["scale", str(run_dir), "--length", "1=4.0"]) == 0
+    assert "m from line 1 of known length 4 m" in (run_dir / "report.html").read_text()
+    assert not np.array_equal(np.asarray(Image.open(run_dir / "previews" / "top.png")), top)  # new title
+
+
 def test_camera_height_and_points_on_a_finished_run(run_dir: Path, capsys):
     m = Map.load(run_dir / "map.papl")
     metres = float(np.linalg.norm(m.points.xyz[0] - m.points.xyz[5])) / UNITS_PER_M

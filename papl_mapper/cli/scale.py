@@ -20,7 +20,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="put a finished run in metres (known length, points, marker, camera height)",
         description=__doc__,
         epilog="Rewrites map.papl, trajectory.tum, keyframes.tum, summary.json and the map.* exports "
-        "in RUN_DIR (and report.html when present); nothing changes when an input is bad.",
+        "in RUN_DIR (then the previews and report.html when present); nothing changes when an input "
+        "is bad.",
     )
     p.add_argument("run_dir", type=Path, help="the --out folder of a finished `papl-map run`")
     p.add_argument(
@@ -101,6 +102,14 @@ def run(args: argparse.Namespace) -> int:
     scaled, written = rescale_run(args.run_dir, est, m)
     for p in written:
         print(f"wrote {p}")
+    previews = args.run_dir / "previews"
+    if previews.is_dir():  # the previews there again: their titles say the units
+        from papl_mapper.gui.preview import VIEWS, PreviewOptions, render_views
+
+        views = tuple(v for v in VIEWS if (previews / f"{v}.png").exists())
+        if views:
+            res = render_views(scaled, previews, PreviewOptions(views=views))
+            print(f"wrote {len(res.paths)} previews into {previews}")
     report = args.run_dir / "report.html"
     if report.exists():
         from papl_mapper.gui.report import write_report
