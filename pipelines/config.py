@@ -17,6 +17,7 @@ from papl_mapper.mapping.culling import CullConfig
 from papl_mapper.mapping.incremental import IncrementalConfig
 from papl_mapper.mapping.lines import LineInitConfig
 from papl_mapper.mapping.track_completion import CompletionConfig
+from papl_mapper.scale.config import ScaleConfig
 
 
 @dataclass
@@ -69,6 +70,8 @@ class RunConfig:
     """Extra outputs."""
     focal: FocalCheckConfig = field(default_factory=FocalCheckConfig)
     """Focal-length plausibility check after mapping (warns when the map supports another focal length)."""
+    scale: ScaleConfig = field(default_factory=ScaleConfig)
+    """Metric scale after mapping (markers, camera height); none by default: arbitrary units."""
     seed: int = 0
     """Seed for every random choice (RANSAC), so the same input gives the same map."""
     local_ba_every: int = 10

@@ -61,6 +61,7 @@ from papl_mapper.mapping.structure import find_structure, line_weights
 from papl_mapper.mapping.track_completion import complete_tracks
 from papl_mapper.mapping.tracking import track_pnp
 from papl_mapper.mapping.windowed import WindowedRefiner
+from papl_mapper.scale import scale_from_config
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -203,6 +204,8 @@ def run(
         )
         with timer.stage("trajectory"):
             traj = frame_trajectory(tracks, m, cfg)
+        with timer.stage("scale"):
+            m, traj = scale_from_config(m, traj, cfg.scale, rec.frames)
         summary = {
             "recording": {
                 "path": str(recording),

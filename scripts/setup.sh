@@ -5,7 +5,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libgomp1 libosmesa6 libxrender1 libxext6 nodejs npm)
+# librecad (dxf2pdf), poppler-utils (pdftoppm) and chromium read the CAD exports back in the tests
+SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libgomp1 libosmesa6 libxrender1 libxext6 nodejs npm librecad poppler-utils chromium)
 missing=()
 for pkg in "${SYSTEM_PACKAGES[@]}"; do
     if ! dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed"; then
