@@ -53,7 +53,7 @@ TITLES = {
 # RunConfig later invalidates every checkpoint until it is listed here (safe, never stale).
 # frontend and hfov_deg act through the tracks and the camera, which the frontend key holds.
 _UPSTREAM = {"frontend", "hfov_deg"}
-_LATER_ONLY = {"output", "focal", "stray_line_margin"}
+_LATER_ONLY = {"output", "focal", "scale", "stray_line_margin"}
 _LINES_AND_AXES = {"lines", "axes", "variant", "axis_min_support_fraction", "lines_from_all_frames"}
 NOT_READ: dict[str, set[str]] = {
     "registration": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES | {"cull", "completion", "max_line_error_px"},
