@@ -89,9 +89,6 @@ class RunConfig:
     """Point observations reprojecting further than this are culled before each bundle adjustment."""
     max_line_error_px: float = 4.0
     """Line observations with an endpoint further than this from the projected line are culled."""
-    pre_ba_cull_factor: float = 3.0
-    """Before each global BA only observations over this many times the two limits above are culled;
-    the limits themselves apply to the adjusted map, which is adjusted again when they cull any."""
     hfov_deg: float = 60.0
     """Horizontal field of view used to guess intrinsics when no camera file is given."""
 

@@ -2,9 +2,8 @@
 
 frontend (tracks) -> keyframe registration with windowed BA -> points-only global BA -> track
 completion, merging and retriangulation, and the points BA again -> line triangulation (temporary-VP
-stage) -> upright rotation, axes and soft association -> full global BA over points, anchored and
-orthonormal lines -> axis update and a second BA -> every frame's pose. Each global BA culls gross
-outliers before it and applies the error limits after it (adjusting again when they cull any).
+stage) -> upright rotation, axes and soft association -> full global BA over
+points, anchored and orthonormal lines -> axis update and a second BA -> every frame's pose.
 The frontend, registration, points BA and full BA are checkpointed in OUT/.checkpoint (see
 `pipelines/checkpoint.py`), so `--resume` after an interruption continues after the latest of them.
 """
@@ -31,7 +30,7 @@ from papl_mapper.pipelines.config import RunConfig
 
 from papl_mapper import __version__
 from papl_mapper.atomic import atomic_path
-from papl_mapper.backend import BAResult, global_ba
+from papl_mapper.backend import global_ba
 from papl_mapper.backend.calibration import check_focal
 from papl_mapper.config import config_to_dict, dump_toml
 from papl_mapper.errors import UnmappableError
@@ -438,43 +437,9 @@ def _lines_and_axes(
 
 
 def _ba(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> tuple[Map, dict[str, Any]]:
-    """Gross outliers culled, global BA, then the observations over the limits culled from the adjusted
-    map and BA again from there when any were: culling at the limits before BA would also drop good
-    observations of points the first estimate placed badly. The map and statistics."""
-    f = cfg.pre_ba_cull_factor
-    culled = cull_observations(m, f * cfg.max_point_error_px, f * cfg.max_line_error_px, cfg.ba.min_views, 1)
+    """Outliers culled, then global BA with a progress bar per LM iteration; the map and statistics."""
+    culled = cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views, 1)
     log.info("%s: culled %s", title, ", ".join(f"{v} {k}" for k, v in culled.items() if v) or "nothing")
-    res = _solve(m, cfg, progress, title)
-    after = cull_observations(res.map, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views, 1)
-    first = res
-    if any(after.values()):
-        log.info("%s: culled after BA %s", title, ", ".join(f"{v} {k}" for k, v in after.items() if v))
-        res = _solve(res.map, cfg, progress, f"{title} after culling")
-    res.map.metadata = dict(m.metadata)
-    stats = {
-        "initial_cost": first.initial_cost,
-        "final_cost": res.final_cost,
-        "iterations": first.iterations + (res.iterations if res is not first else 0),
-        "converged": res.converged,
-        "time_s": round(first.time_s + (res.time_s if res is not first else 0.0), 3),
-        "rms": {k: {"before": first.initial_rms_px.get(k), "after": v} for k, v in res.final_rms_px.items()},
-        "culled_observations": sum(
-            v for c in (culled, after) for k, v in c.items() if k.endswith("observations")
-        ),
-        "problem": {
-            "variables": res.n_variables,
-            "observations": res.n_observations,
-            "line_parameters": res.line_params,
-            "culled_before": culled,
-            "culled_after": after,
-            "left_out": first.dropped,
-        },
-    }
-    return res.map, stats
-
-
-def _solve(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> BAResult:
-    """One global BA with a progress bar per LM iteration, logged."""
     with progress(title) as cb:
         res = global_ba(m, cfg.ba, progress=lambda i, n, cost: cb(i, n, f"cost {cost:.6g}"))
     log.info(
@@ -490,7 +455,24 @@ def _solve(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> BAR
         log.info(
             "%s: left out %s", title, ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in res.dropped.items())
         )
-    return res
+    res.map.metadata = dict(m.metadata)
+    stats = {
+        "initial_cost": res.initial_cost,
+        "final_cost": res.final_cost,
+        "iterations": res.iterations,
+        "converged": res.converged,
+        "time_s": round(res.time_s, 3),
+        "rms": {k: {"before": res.initial_rms_px.get(k), "after": v} for k, v in res.final_rms_px.items()},
+        "culled_observations": sum(v for k, v in culled.items() if k.endswith("observations")),
+        "problem": {
+            "variables": res.n_variables,
+            "observations": res.n_observations,
+            "line_parameters": res.line_params,
+            "culled_before": culled,
+            "left_out": res.dropped,
+        },
+    }
+    return res.map, stats
 
 
 def _up(axes: Axes) -> np.ndarray:
