@@ -1,0 +1,167 @@
+"""The viewer's scripted-control hook: a JSON list of steps run in the open window, one after another.
+
+Each step is an object with "do" naming it. Keys and clicks go through Qt as a user's would
+(`key`, `click`, `click_line`); `call` invokes one of the window's actions by name; `screenshot`
+grabs the window from the screen (what a user sees), `render` only the 3D view, `state` writes
+`ViewerWindow.state()` as JSON; `wait` lets the event loop run; `quit` closes the window. Tests
+use it under Xvfb, and `papl-map view --script FILE` exposes it to users for reproducible shots.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from papl_mapper.errors import InputError
+
+from .viewer_pick import to_pixels
+
+log = logging.getLogger(__name__)
+
+#: Window actions a script may `call`, with their keyword arguments.
+CALLABLE = {
+    "set_keyframe": ("row",),
+    "set_filters": ("min_observations", "max_rms_px", "unanchored_on"),
+    "toggle_group": ("i",),
+    "view_top": (),
+    "view_front": (),
+    "view_side": (),
+    "view_isometric": (),
+    "fit": (),
+    "toggle_follow": (),
+    "toggle_play": (),
+    "pick_row": ("row",),
+    "clear_pick": (),
+    "save_png": ("path",),
+    "save_viewpoint": ("path",),
+    "restore_viewpoint": ("path",),
+}
+STEPS = ("key", "click", "click_line", "call", "screenshot", "render", "state", "wait", "quit")
+
+
+def load_script(path: Path) -> list[dict[str, Any]]:
+    """Read and check a script; raise InputError naming the file and the first bad step."""
+    try:
+        steps = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the script ({exc.strerror or exc})") from exc
+    except ValueError as exc:
+        raise InputError(f"{path}: not JSON ({exc})") from exc
+    if not isinstance(steps, list):
+        raise InputError(f"{path}: a script is a JSON list of steps")
+    for i, s in enumerate(steps):
+        if not isinstance(s, dict) or s.get("do") not in STEPS:
+            raise InputError(f"{path}: step {i} must be an object with 'do' one of {list(STEPS)}")
+        if s["do"] == "call":
+            method = s.get("method")
+            if method not in CALLABLE:
+                raise InputError(f"{path}: step {i} calls {method!r}; callable: {sorted(CALLABLE)}")
+            bad = set(s.get("kwargs", {})) - set(CALLABLE[method])
+            if bad:
+                raise InputError(f"{path}: step {i}: {method} takes no {sorted(bad)}")
+    return steps
+
+
+def run_script(win: Any, path: Path) -> None:
+    """Queue the script's steps on the window's event loop (the first runs once the window is up)."""
+    from PySide6 import QtCore
+
+    steps = load_script(path)
+    state = {"i": 0}
+
+    def step() -> None:
+        if state["i"] >= len(steps):
+            return
+        s = steps[state["i"]]
+        state["i"] += 1
+        try:
+            delay = _run_step(win, s)
+        except Exception as exc:  # a failing step ends the run with its message, as a CLI error would
+            log.error("script %s, step %d (%s): %s", path, state["i"] - 1, s.get("do"), exc)
+            win.exit_code = 1
+            win.close()
+            return
+        if s["do"] != "quit":
+            QtCore.QTimer.singleShot(delay, step)
+
+    QtCore.QTimer.singleShot(200, step)
+
+
+def _run_step(win: Any, s: dict[str, Any]) -> int:
+    """Do one step; returns the milliseconds to let the event loop run before the next."""
+    from PySide6 import QtCore, QtWidgets
+    from PySide6.QtTest import QTest
+
+    do = s["do"]
+    app = QtWidgets.QApplication.instance()
+    if do == "key":
+        seq = _key(s["keys"])
+        target = QtWidgets.QApplication.focusWidget() or win
+        QTest.keyClick(target, seq[0], seq[1])
+    elif do in ("click", "click_line"):
+        if do == "click":
+            x, y = float(s["x"]), float(s["y"])
+        else:
+            x, y = line_on_screen(win, int(s["id"]))
+        mods = QtCore.Qt.KeyboardModifier.ShiftModifier if s.get("shift") else QtCore.Qt.KeyboardModifier(0)
+        QTest.mouseClick(
+            win.plotter.interactor, QtCore.Qt.MouseButton.LeftButton, mods, QtCore.QPoint(round(x), round(y))
+        )
+    elif do == "call":
+        getattr(win, s["method"])(**s.get("kwargs", {}))
+    elif do == "screenshot":
+        app.processEvents()
+        win.plotter.render()
+        screen = win.screen()
+        pix = screen.grabWindow(win.winId())
+        Path(s["path"]).parent.mkdir(parents=True, exist_ok=True)
+        if not pix.save(str(s["path"]), "PNG"):
+            raise OSError(f"{s['path']}: the screenshot could not be written")
+    elif do == "render":
+        from PIL import Image
+
+        Image.fromarray(win.render_3d()).save(s["path"])
+    elif do == "state":
+        Path(s["path"]).write_text(json.dumps(win.state(), indent=1, default=_json))
+    elif do == "wait":
+        return int(s.get("ms", 100))
+    elif do == "quit":
+        win.close()
+    return int(s.get("after_ms", 50))
+
+
+def line_on_screen(win: Any, line_id: int) -> tuple[float, float]:
+    """Widget pixel of the middle of drawn line `line_id` (raises when it is not drawn or off screen)."""
+    rows = np.flatnonzero(win.map.lines.ids == line_id)
+    if not len(rows) or not np.isin(rows[0], win.selection.drawn):
+        raise ValueError(f"line {line_id} is not drawn")
+    mid = win.scene.endpoints_w[rows[0]].astype(np.float64).mean(axis=0)
+    px, _ = to_pixels(win.world_to_ndc(), mid[None], win.view_size())
+    x, y = px[0]
+    w, h = win.view_size()
+    if not (np.isfinite(x) and 0 <= x < w and 0 <= y < h):
+        raise ValueError(f"line {line_id} is off screen")
+    return float(x), float(y)
+
+
+def _key(text: str) -> tuple[Any, Any]:
+    """'Ctrl+S' -> (Qt.Key_S, Ctrl modifier)."""
+    from PySide6 import QtGui
+
+    seq = QtGui.QKeySequence(text)
+    combo = seq[0]
+    return combo.key(), combo.keyboardModifiers()
+
+
+def _json(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(type(o).__name__)
