@@ -18,7 +18,7 @@ import numpy as np
 
 from papl_mapper.errors import InputError
 
-from .viewer_pick import to_pixels
+from .viewer_pick import clearest_spot
 
 log = logging.getLogger(__name__)
 
@@ -100,8 +100,7 @@ def _run_step(win: Any, s: dict[str, Any]) -> int:
     app = QtWidgets.QApplication.instance()
     if do == "key":
         seq = _key(s["keys"])
-        target = QtWidgets.QApplication.focusWidget() or win
-        QTest.keyClick(target, seq[0], seq[1])
+        QTest.keyClick(win.plotter.interactor, seq[0], seq[1])  # as typed with the pointer on the 3D view
     elif do in ("click", "click_line"):
         if do == "click":
             x, y = float(s["x"]), float(s["y"])
@@ -135,17 +134,16 @@ def _run_step(win: Any, s: dict[str, Any]) -> int:
 
 
 def line_on_screen(win: Any, line_id: int) -> tuple[float, float]:
-    """Widget pixel of the middle of drawn line `line_id` (raises when it is not drawn or off screen)."""
+    """Widget pixel where drawn line `line_id` stands clearest of the others (raises when not in view)."""
     rows = np.flatnonzero(win.map.lines.ids == line_id)
-    if not len(rows) or not np.isin(rows[0], win.selection.drawn):
+    drawn = win.selection.drawn
+    where = np.flatnonzero(drawn == rows[0]) if len(rows) else []
+    if not len(where):
         raise ValueError(f"line {line_id} is not drawn")
-    mid = win.scene.endpoints_w[rows[0]].astype(np.float64).mean(axis=0)
-    px, _ = to_pixels(win.world_to_ndc(), mid[None], win.view_size())
-    x, y = px[0]
-    w, h = win.view_size()
-    if not (np.isfinite(x) and 0 <= x < w and 0 <= y < h):
+    spot = clearest_spot(win.world_to_ndc(), win.view_size(), win.scene.endpoints_w[drawn], int(where[0]))
+    if spot is None:
         raise ValueError(f"line {line_id} is off screen")
-    return float(x), float(y)
+    return spot
 
 
 def _key(text: str) -> tuple[Any, Any]:

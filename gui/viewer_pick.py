@@ -51,6 +51,36 @@ def to_pixels(
     return px, ndc[:, 2]
 
 
+def segment_distances(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel distance of point c (2,) to each 2D segment a-b (k, 2), and the parameter t of the foot."""
+    ab = b - a
+    L2 = np.maximum(np.sum(ab * ab, axis=1), 1e-12)
+    t = np.clip(np.sum((c - a) * ab, axis=1) / L2, 0, 1)
+    d = np.linalg.norm(a + t[:, None] * ab - c, axis=1)
+    return np.where(np.isfinite(d), d, np.inf), t
+
+
+def clearest_spot(
+    world_to_ndc: np.ndarray, size: tuple[int, int], endpoints_w: np.ndarray, k: int, samples: int = 21
+) -> tuple[float, float] | None:
+    """The pixel on segment `k` of (n, 2, 3) farthest from every other segment on screen (where a user
+    would click to pick it), or None when no part of it is in the view."""
+    px, _ = to_pixels(world_to_ndc, endpoints_w.reshape(-1, 3), size)
+    a, b = px[0::2], px[1::2]
+    others = np.ones(len(a), bool)
+    others[k] = False
+    best, spot = -1.0, None
+    w, h = size
+    for s in np.linspace(0.05, 0.95, samples):
+        c = a[k] + s * (b[k] - a[k])
+        if not (np.isfinite(c).all() and 2 <= c[0] < w - 2 and 2 <= c[1] < h - 2):
+            continue
+        d = segment_distances(a[others], b[others], c)[0].min(initial=np.inf)
+        if d > best:
+            best, spot = d, (float(c[0]), float(c[1]))
+    return spot
+
+
 def pick_segment(
     world_to_ndc: np.ndarray,
     size: tuple[int, int],

@@ -171,16 +171,13 @@ def _rows(ids: np.ndarray, refs: np.ndarray) -> np.ndarray:
     return order[np.searchsorted(ids, refs, sorter=order)]
 
 
-def bounds(m: Map) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) corners framing the map's lines, keyframes and points, less far strays."""
+def bounds(m: Map, q: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) corners framing the bulk of the map: the q..100-q percentile box of its line endpoints,
+    keyframe centres and points, padded by a tenth (far strays of a monocular map stay out of it)."""
     parts = [m.lines.endpoints_w.reshape(-1, 3), m.keyframes.T_wc[:, :3, 3], m.points.xyz]
     xyz = np.concatenate([p for p in parts if len(p)] or [np.array([[-1.0, -1, -1], [1, 1, 1]])])
     if len(xyz) > 200_000:
         xyz = xyz[:: len(xyz) // 200_000]
-    if len(xyz) >= 50:
-        lo, hi = np.percentile(xyz, [0.5, 99.5], axis=0)
-        span = hi - lo
-        xyz = xyz[((xyz >= lo - 0.5 * span) & (xyz <= hi + 0.5 * span)).all(axis=1)]
-    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-    pad = np.maximum((hi - lo) * 0.02, 1e-3)
+    lo, hi = np.percentile(xyz, [q, 100 - q], axis=0) if len(xyz) >= 50 else (xyz.min(0), xyz.max(0))
+    pad = np.maximum((hi - lo) * 0.1, 1e-3)
     return lo - pad, hi + pad

@@ -24,7 +24,7 @@ from papl_mapper.palette import hex_color
 
 from .preview import _VIEW_GEOMETRY, THEMES, TRAJECTORY_RGB, PreviewOptions, Scene, _compose, _save_png
 from .viewer_actors import frusta_segments, points_polydata, segments_polydata, trajectory_polydata
-from .viewer_pick import LineFacts, line_facts, pick_point, pick_segment
+from .viewer_pick import LineFacts, line_facts, pick_point, pick_segment, to_pixels
 from .viewer_scene import Filters, Selection, ViewerScene, bounds
 from .viewer_walk import Panel, detector_for, keyframe_panel, open_frames
 
@@ -86,6 +86,16 @@ SHORTCUTS: tuple[tuple[str, str, str], ...] = (
 )
 
 
+def frustum_depth(m: Map, diag: float) -> float:
+    """Depth of the drawn keyframe frusta: a few of the walk's typical steps between keyframes
+    (so they stay small against the map), at most a fiftieth of the map's diagonal."""
+    c = m.keyframes.T_wc[:, :3, 3]
+    steps = np.linalg.norm(np.diff(c, axis=0), axis=1)
+    steps = steps[steps > 0]
+    typical = 4 * float(np.median(steps)) if len(steps) else diag
+    return min(typical, 0.02 * diag) or 0.02 * diag
+
+
 def open_viewer(
     m: Map,
     source: Path,
@@ -131,6 +141,8 @@ def _window_class() -> type:
 
         def eventFilter(self, obj: Any, ev: Any) -> bool:  # noqa: N802 (Qt's name)
             t = ev.type()
+            if t == QtCore.QEvent.Type.KeyPress:
+                return self.window.handle_key(ev)  # before VTK's own keys (w, s, e, q, 3 ...)
             if t == QtCore.QEvent.Type.MouseButtonPress and ev.button() == QtCore.Qt.MouseButton.LeftButton:
                 self.press = ev.position()
             elif t == QtCore.QEvent.Type.MouseButtonRelease and self.press is not None:
@@ -169,6 +181,7 @@ def _window_class() -> type:
             lo, hi = bounds(m)
             self.lo, self.hi = lo, hi
             self.diag = float(np.linalg.norm(hi - lo)) or 1.0
+            self.frustum_depth = frustum_depth(m, self.diag)
             self.setWindowTitle(f"papl-map view: {source}")
             self.resize(options.width, options.height)
             self._build_ui(QtCore, QtGui, QtWidgets, QtInteractor)
@@ -283,15 +296,23 @@ def _window_class() -> type:
             self.status = QtWidgets.QLabel()
             self.status.setWordWrap(True)
             col.addWidget(self.status)
-            for keys, method, _ in SHORTCUTS:
-                self._shortcut(keys, getattr(self, method))
+            seq = QtGui.QKeySequence
+            self.keys = {seq(keys).toString(): getattr(self, method) for keys, method, _ in SHORTCUTS}
             for k in range(2, min(self.scene.n_axes, 9) + 1):
-                self._shortcut(str(k), lambda k=k: self.toggle_group(k - 1))
+                self.keys[str(k)] = lambda k=k: self.toggle_group(k - 1)
 
-        def _shortcut(self, keys: str, fn: Any) -> None:
-            sc = self.QtGui.QShortcut(self.QtGui.QKeySequence(keys), self)
-            sc.setContext(self.QtCore.Qt.ShortcutContext.ApplicationShortcut)
-            sc.activated.connect(fn)
+        def handle_key(self, ev: Any) -> bool:
+            """Run the action bound to a key press; False (not handled) for other keys."""
+            name = self.QtGui.QKeySequence(ev.keyCombination()).toString()
+            fn = self.keys.get(name) or self.keys.get(name.removeprefix("Shift+"))  # "+" is Shift+= on US keys
+            if fn is None:
+                return False
+            fn()
+            return True
+
+        def keyPressEvent(self, ev: Any) -> None:  # noqa: N802 (Qt's name): keys no child widget took
+            if not self.handle_key(ev):
+                super().keyPressEvent(ev)
 
         def _swatch(self, rgb: tuple[int, int, int]) -> Any:
             pix = self.QtGui.QPixmap(14, 14)
@@ -331,7 +352,7 @@ def _window_class() -> type:
                 step = max(1, math.ceil(len(m.keyframes) / 200))
                 rows = np.arange(0, len(m.keyframes), step)
                 self.frusta_actor = pl.add_mesh(
-                    segments_polydata(frusta_segments(m, 0.02 * self.diag, rows)),
+                    segments_polydata(frusta_segments(m, self.frustum_depth, rows)),
                     color=tcol,
                     line_width=1,
                     lighting=False,
@@ -547,7 +568,7 @@ def _window_class() -> type:
                 self.slider.blockSignals(True)
                 self.slider.setValue(row)
                 self.slider.blockSignals(False)
-            seg = frusta_segments(self.map, 0.04 * self.diag, [row])
+            seg = frusta_segments(self.map, 1.5 * self.frustum_depth, [row])
             self.plotter.add_mesh(
                 segments_polydata(seg),
                 color=[c / 255 for c in CURRENT_RGB],
@@ -572,7 +593,7 @@ def _window_class() -> type:
             T = self.map.keyframes.T_wc[self.kf_row]
             c, R = T[:3, 3], T[:3, :3]
             cam = self.plotter.camera
-            back = 0.03 * self.diag  # a little behind the keyframe, so its frustum is in view
+            back = 3 * self.frustum_depth  # a little behind the keyframe, so its frustum is in view
             self.plotter.camera_position = [tuple(c - R[:, 2] * back), tuple(c + R[:, 2]), tuple(-R[:, 1])]
             h = self.map.camera.height
             cam.SetViewAngle(math.degrees(2 * math.atan(0.5 * h / self.map.camera.fy)) * 1.15)
@@ -633,7 +654,7 @@ def _window_class() -> type:
             return self.plotter.interactor.width(), self.plotter.interactor.height()
 
         def click(self, x: float, y: float, measure: bool = False) -> None:
-            """A click at widget pixel (x, y): pick the line under it, or with `measure` a point to measure."""
+            """A click at widget pixel (x, y): pick the line under it, or with `measure` a point."""
             M, size = self.world_to_ndc(), self.view_size()
             if measure:
                 cands = [self.scene.endpoints_w[self.selection.drawn].reshape(-1, 3).astype(np.float64)]
@@ -674,7 +695,7 @@ def _window_class() -> type:
             self.plotter.remove_actor("seeing", render=False)
             if len(rows):
                 self.plotter.add_mesh(
-                    segments_polydata(frusta_segments(self.map, 0.03 * self.diag, rows)),
+                    segments_polydata(frusta_segments(self.map, 1.2 * self.frustum_depth, rows)),
                     color=col,
                     line_width=2,
                     lighting=False,
@@ -814,10 +835,34 @@ def _window_class() -> type:
                 },
                 "picked": None if self.picked is None else self.picked.__dict__,
                 "measured": getattr(self, "measured", None) if len(self.measure) == 2 else None,
+                "screen_length_px": self.screen_lengths(),
+                "view_rect": self._rect(self.plotter.interactor),
+                "panel_rect": self._rect(self.image_label),
                 "status": self.status.text(),
                 "pick_text": self.pick_label.text(),
                 "timings_s": dict(self.timings),
             }
+
+        def screen_lengths(self) -> list[float]:
+            """Pixel length on screen of the drawn lines per axis, then unanchored (clipped to the view)."""
+            sel = self.selection
+            out = np.zeros(self.scene.n_axes + 1)
+            if sel is None or not len(sel.drawn):
+                return out.tolist()
+            w, h = self.view_size()
+            px, _ = to_pixels(self.world_to_ndc(), self.scene.endpoints_w[sel.drawn].reshape(-1, 3), (w, h))
+            a, b = px[0::2], px[1::2]
+            inside = np.isfinite(a).all(1) & np.isfinite(b).all(1)
+            a, b = np.clip(a[inside], [0, 0], [w, h]), np.clip(b[inside], [0, 0], [w, h])
+            group = self.scene.axis[sel.drawn][inside]
+            group = np.where(group < 0, self.scene.n_axes, group)
+            out += np.bincount(group, weights=np.linalg.norm(b - a, axis=1), minlength=len(out))
+            return out.tolist()
+
+        def _rect(self, widget: Any) -> list[int]:
+            """(x, y, w, h) of a child widget in window pixels (where it is in a screenshot)."""
+            p = widget.mapTo(self, self.QtCore.QPoint(0, 0))
+            return [p.x(), p.y(), widget.width(), widget.height()]
 
         def closeEvent(self, ev: Any) -> None:  # noqa: N802 (Qt's name)
             if self.frames is not None:
