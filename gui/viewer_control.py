@@ -98,6 +98,8 @@ def _run_step(win: Any, s: dict[str, Any]) -> int:
 
     do = s["do"]
     app = QtWidgets.QApplication.instance()
+    if "path" in s and do in ("screenshot", "render", "state"):
+        Path(s["path"]).parent.mkdir(parents=True, exist_ok=True)
     if do == "key":
         seq = _key(s["keys"])
         QTest.keyClick(win.plotter.interactor, seq[0], seq[1])  # as typed with the pointer on the 3D view
@@ -117,7 +119,6 @@ def _run_step(win: Any, s: dict[str, Any]) -> int:
         win.plotter.render()
         screen = win.screen()
         pix = screen.grabWindow(win.winId())
-        Path(s["path"]).parent.mkdir(parents=True, exist_ok=True)
         if not pix.save(str(s["path"]), "PNG"):
             raise OSError(f"{s['path']}: the screenshot could not be written")
     elif do == "render":

@@ -304,7 +304,9 @@ def _window_class() -> type:
         def handle_key(self, ev: Any) -> bool:
             """Run the action bound to a key press; False (not handled) for other keys."""
             name = self.QtGui.QKeySequence(ev.keyCombination()).toString()
-            fn = self.keys.get(name) or self.keys.get(name.removeprefix("Shift+"))  # "+" is Shift+= on US keys
+            fn = self.keys.get(name) or self.keys.get(
+                name.removeprefix("Shift+")
+            )  # "+" is Shift+= on US keys
             if fn is None:
                 return False
             fn()
@@ -578,6 +580,9 @@ def _window_class() -> type:
                 reset_camera=False,
                 render=False,
             )
+            current = self.plotter.actors.get("current")
+            if current is not None:  # following, the view is the keyframe's: its frustum would frame it
+                current.SetVisibility(not self.follow)
             if self.follow:
                 self._follow_camera()
             t0 = time.perf_counter()
@@ -593,8 +598,8 @@ def _window_class() -> type:
             T = self.map.keyframes.T_wc[self.kf_row]
             c, R = T[:3, 3], T[:3, :3]
             cam = self.plotter.camera
-            back = 3 * self.frustum_depth  # a little behind the keyframe, so its frustum is in view
-            self.plotter.camera_position = [tuple(c - R[:, 2] * back), tuple(c + R[:, 2]), tuple(-R[:, 1])]
+            # the keyframe's own view (as in the 2D panel), a touch wider so its surroundings show
+            self.plotter.camera_position = [tuple(c), tuple(c + R[:, 2]), tuple(-R[:, 1])]
             h = self.map.camera.height
             cam.SetViewAngle(math.degrees(2 * math.atan(0.5 * h / self.map.camera.fy)) * 1.15)
             self.plotter.renderer.ResetCameraClippingRange()
@@ -620,9 +625,12 @@ def _window_class() -> type:
 
         def _set_follow(self, on: bool) -> None:
             self.follow = bool(on)
+            current = self.plotter.actors.get("current")
+            if current is not None:
+                current.SetVisibility(not self.follow)
             if on and len(self.map.keyframes):
                 self._follow_camera()
-                self.plotter.render()
+            self.plotter.render()
 
         def toggle_follow(self) -> None:
             self.follow_box.toggle()
