@@ -50,6 +50,7 @@ def trajectory_polydata(m: Map) -> Any | None:
 
 def frusta_segments(m: Map, depth: float, rows: np.ndarray | None = None) -> np.ndarray:
     """(8k, 2, 3) frustum edges of the keyframes at `rows` (all when None)."""
+
     if len(m.keyframes) == 0:
         return np.zeros((0, 2, 3))
     seg = frustum_segments(m, depth).reshape(len(m.keyframes), -1, 2, 3)

@@ -1,7 +1,8 @@
 """The viewer's scripted-control hook: a JSON list of steps run in the open window, one after another.
 
 Each step is an object with "do" naming it. Keys and clicks go through Qt as a user's would
-(`key`, `click`, `click_line`); `call` invokes one of the window's actions by name; `screenshot`
+(`key`, `click`, `click_line`); `call` invokes one of the window's actions by name; `orbit` turns
+the camera about the vertical and times each frame; `screenshot`
 grabs the window from the screen (what a user sees), `render` only the 3D view, `state` writes
 `ViewerWindow.state()` as JSON; `wait` lets the event loop run; `quit` closes the window. Tests
 use it under Xvfb, and `papl-map view --script FILE` exposes it to users for reproducible shots.
@@ -40,7 +41,7 @@ CALLABLE = {
     "save_viewpoint": ("path",),
     "restore_viewpoint": ("path",),
 }
-STEPS = ("key", "click", "click_line", "call", "screenshot", "render", "state", "wait", "quit")
+STEPS = ("key", "click", "click_line", "call", "orbit", "screenshot", "render", "state", "wait", "quit")
 
 
 def load_script(path: Path) -> list[dict[str, Any]]:
@@ -114,6 +115,8 @@ def _run_step(win: Any, s: dict[str, Any]) -> int:
         )
     elif do == "call":
         getattr(win, s["method"])(**s.get("kwargs", {}))
+    elif do == "orbit":
+        win.orbit(int(s.get("frames", 12)), float(s.get("degrees", 10.0)))
     elif do == "screenshot":
         app.processEvents()
         win.plotter.render()

@@ -126,10 +126,10 @@ class ViewerScene:
 
 
 def observation_counts(ids: np.ndarray, obs_ids: np.ndarray) -> np.ndarray:
-    """(M,) how many observations name each id (observations of unknown ids are ignored)."""
-    from papl_mapper.exporters.scene import observation_counts as counts
-
-    return counts(ids, obs_ids)
+    """(M,) how many observations name each id (a validated map refers to known ids only)."""
+    if len(ids) == 0 or len(obs_ids) == 0:
+        return np.zeros(len(ids), np.int64)
+    return np.bincount(_rows(ids, obs_ids), minlength=len(ids)).astype(np.int64)
 
 
 def line_rms_px(m: Map, chunk: int = 1_000_000) -> np.ndarray:

@@ -86,6 +86,14 @@ SHORTCUTS: tuple[tuple[str, str, str], ...] = (
 )
 
 
+def import_window_libraries() -> None:
+    """Import Qt, pyvista and pyvistaqt without touching the display (the CLI overlaps this with its
+    probe of the display in a child process)."""
+    import pyvista  # noqa: F401
+    import pyvistaqt  # noqa: F401
+    from PySide6 import QtWidgets  # noqa: F401
+
+
 def frustum_depth(m: Map, diag: float) -> float:
     """Depth of the drawn keyframe frusta: a few of the walk's typical steps between keyframes
     (so they stay small against the map), at most a fiftieth of the map's diagonal."""
@@ -350,17 +358,6 @@ def _window_class() -> type:
                 self.traj_actor = pl.add_mesh(
                     traj, color=tcol, line_width=3, lighting=False, name="trajectory"
                 )
-            if len(m.keyframes):
-                step = max(1, math.ceil(len(m.keyframes) / 200))
-                rows = np.arange(0, len(m.keyframes), step)
-                self.frusta_actor = pl.add_mesh(
-                    segments_polydata(frusta_segments(m, self.frustum_depth, rows)),
-                    color=tcol,
-                    line_width=1,
-                    lighting=False,
-                    name="frusta",
-                )
-                self.frusta_actor.SetVisibility(False)
 
         # ---- lines and filters --------------------------------------------------------------
 
@@ -431,6 +428,7 @@ def _window_class() -> type:
             self.plotter.render()
             QtWidgets.QApplication.processEvents()
             self.timings["first_frame_s"] = time.perf_counter() - self.started
+            self.timings["first_frame_unix"] = time.time()
             t0 = time.perf_counter()
             self.scene.compute_rms(self.map)
             self.timings["rms_s"] = time.perf_counter() - t0
@@ -446,11 +444,27 @@ def _window_class() -> type:
 
         # ---- toggles --------------------------------------------------------------------------
 
+        def _frusta_actor(self) -> Any:
+            """Keyframe frusta (at most 200, every k-th), made the first time they are shown."""
+            m = self.map
+            if self.frusta_actor is None and len(m.keyframes):
+                rows = np.arange(0, len(m.keyframes), max(1, math.ceil(len(m.keyframes) / 200)))
+                self.frusta_actor = self.plotter.add_mesh(
+                    segments_polydata(frusta_segments(m, self.frustum_depth, rows)),
+                    color=[c / 255 for c in TRAJECTORY_RGB],
+                    line_width=1,
+                    lighting=False,
+                    name="frusta",
+                    reset_camera=False,
+                    render=False,
+                )
+            return self.frusta_actor
+
         def _set_flag(self, name: str, on: bool) -> None:
             setattr(self, name, on)
             actor = {"show_points": self.points_actor, "show_trajectory": self.traj_actor}.get(name)
             if name == "show_frusta":
-                actor = self.frusta_actor
+                actor = self._frusta_actor()
             if actor is not None:
                 actor.SetVisibility(bool(on))
             self.plotter.render()
@@ -512,6 +526,19 @@ def _window_class() -> type:
             self.plotter.camera_position = [tuple(centre + d * dist), tuple(centre), tuple(cam.GetViewUp())]
             self.plotter.renderer.ResetCameraClippingRange()
             self.plotter.render()
+
+        def orbit(self, frames: int, degrees: float) -> list[float]:
+            """Turn the camera `frames` times by `degrees` about the vertical through its focal point,
+            rendering each; the seconds per frame go into the timings as orbit_frame_s."""
+            times = []
+            for _ in range(frames):
+                self.plotter.camera.Azimuth(degrees)  # about the view-up, which is +Z in the preset views
+                self.plotter.renderer.ResetCameraClippingRange()
+                t0 = time.perf_counter()
+                self.plotter.ren_win.Render()
+                times.append(time.perf_counter() - t0)
+            self.timings["orbit_frame_s"] = times
+            return times
 
         def viewpoint(self) -> dict[str, Any]:
             cam = self.plotter.camera

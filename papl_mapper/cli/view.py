@@ -121,18 +121,19 @@ def run(args: argparse.Namespace) -> int:
         from papl_mapper.gui.viewer_control import load_script
 
         load_script(args.script)  # a bad script is refused before any window opens
-    probe = start_probe()
+    probe = start_probe()  # runs while the map loads and the window's libraries import
     try:
         m = Map.load(_map_path(src))
+        if len(m.keyframes) and not 0 <= args.keyframe < len(m.keyframes):
+            raise InputError(f"--keyframe {args.keyframe}: the map has keyframes 0..{len(m.keyframes) - 1}")
+        os.environ.setdefault("QT_LOGGING_RULES", "*.debug=false")
+        from papl_mapper.gui.viewer_window import ViewerOptions, import_window_libraries, open_viewer
+
+        import_window_libraries()  # importing is safe without a display; opening a window is not
     except BaseException:
         probe.kill()
         raise
-    if len(m.keyframes) and not 0 <= args.keyframe < len(m.keyframes):
-        probe.kill()
-        raise InputError(f"--keyframe {args.keyframe}: the map has keyframes 0..{len(m.keyframes) - 1}")
     finish_probe(probe)
-    os.environ.setdefault("QT_LOGGING_RULES", "*.debug=false")
-    from papl_mapper.gui.viewer_window import ViewerOptions, open_viewer
 
     options = ViewerOptions(width=width, height=height, detect_segments=not args.no_detect)
     if args.max_lines is not None:
