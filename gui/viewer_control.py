@@ -75,6 +75,9 @@ def run_script(win: Any, path: Path) -> None:
     state = {"i": 0}
 
     def step() -> None:
+        if not win.ready:  # the first frame, the reprojection errors and the 2D panel come first
+            QtCore.QTimer.singleShot(50, step)
+            return
         if state["i"] >= len(steps):
             return
         s = steps[state["i"]]
@@ -89,7 +92,7 @@ def run_script(win: Any, path: Path) -> None:
         if s["do"] != "quit":
             QtCore.QTimer.singleShot(delay, step)
 
-    QtCore.QTimer.singleShot(200, step)
+    QtCore.QTimer.singleShot(0, step)
 
 
 def _run_step(win: Any, s: dict[str, Any]) -> int:

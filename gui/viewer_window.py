@@ -186,6 +186,8 @@ def _window_class() -> type:
             self.frames, self.why_no_frames = None, ""
             self.detector = None
             self.timings: dict[str, float] = {"scene_s": time.perf_counter() - t0}
+            self._ready = False  # no frame is drawn while the window is being built
+            self.ready = False  # True once the first frame, the RMS and the 2D panel are up
             lo, hi = bounds(m)
             self.lo, self.hi = lo, hi
             self.diag = float(np.linalg.norm(hi - lo)) or 1.0
@@ -197,6 +199,8 @@ def _window_class() -> type:
             self.refresh_lines()
             self.view_isometric()
             self.timings["window_s"] = time.perf_counter() - t0
+            self._ready = True  # from here on every change renders; the first paint is the first frame
+            self.plotter.ren_win.AddObserver("EndEvent", self._frame_done)
             self._play_timer = QtCore.QTimer(self)
             self._play_timer.timeout.connect(self._play_step)
             QtCore.QTimer.singleShot(0, self._after_first_frame)
@@ -351,15 +355,26 @@ def _window_class() -> type:
                     style="points",
                     lighting=False,
                     name="points",
+                    reset_camera=False,
+                    render=False,
                 )
             traj = trajectory_polydata(m)
             tcol = [c / 255 for c in TRAJECTORY_RGB]
             if traj is not None:
                 self.traj_actor = pl.add_mesh(
-                    traj, color=tcol, line_width=3, lighting=False, name="trajectory"
+                    traj, color=tcol, line_width=3, lighting=False, name="trajectory", render=False
                 )
 
         # ---- lines and filters --------------------------------------------------------------
+
+        def _frame_done(self, *_: Any) -> None:
+            if "first_frame_s" not in self.timings:
+                self.timings["first_frame_s"] = time.perf_counter() - self.started
+                self.timings["first_frame_unix"] = time.time()
+
+        def _render(self) -> None:
+            if self._ready:
+                self.plotter.render()
 
         def refresh_lines(self) -> None:
             """Redraw the lines passing the filters (decimated beyond max_lines) and update the legend."""
@@ -385,7 +400,7 @@ def _window_class() -> type:
             for box, label, n in zip(self.axis_boxes, self.scene.axis_labels, sel.counts, strict=True):
                 box.setText(f"{label}  ({n:,})")
             self._update_status()
-            self.plotter.render()
+            self._render()
 
         def set_filters(self, **changes: Any) -> None:
             """Change filter fields (min_observations, max_rms_px, unanchored_on) and redraw at once."""
@@ -423,12 +438,8 @@ def _window_class() -> type:
 
         def _after_first_frame(self) -> None:
             """Once the first frame is up: the reprojection RMS (for its filter) and the 2D panel."""
-            from PySide6 import QtWidgets
-
-            self.plotter.render()
-            QtWidgets.QApplication.processEvents()
-            self.timings["first_frame_s"] = time.perf_counter() - self.started
-            self.timings["first_frame_unix"] = time.time()
+            if "first_frame_s" not in self.timings:  # no paint yet: draw the first frame now
+                self.plotter.ren_win.Render()
             t0 = time.perf_counter()
             self.scene.compute_rms(self.map)
             self.timings["rms_s"] = time.perf_counter() - t0
@@ -441,6 +452,7 @@ def _window_class() -> type:
             else:
                 self.caption.setText("this map has no keyframes: nothing to play")
             self._update_status()
+            self.ready = True
 
         # ---- toggles --------------------------------------------------------------------------
 
@@ -467,7 +479,7 @@ def _window_class() -> type:
                 actor = self._frusta_actor()
             if actor is not None:
                 actor.SetVisibility(bool(on))
-            self.plotter.render()
+            self._render()
 
         def toggle_points(self) -> None:
             self.points_box.toggle()
@@ -482,7 +494,7 @@ def _window_class() -> type:
             self.point_size = float(v)
             if self.points_actor is not None:
                 self.points_actor.GetProperty().SetPointSize(self.point_size)
-                self.plotter.render()
+                self._render()
 
         def grow_points(self) -> None:
             self.size_box.setValue(self.size_box.value() + 1)
@@ -502,7 +514,7 @@ def _window_class() -> type:
             dist = 0.5 * self.diag / math.tan(math.radians(15.0)) * 1.05
             self.plotter.camera_position = [tuple(centre + d * dist), tuple(centre), tuple(up)]
             self.plotter.renderer.ResetCameraClippingRange()
-            self.plotter.render()
+            self._render()
 
         def view_top(self) -> None:
             self._view("top")
@@ -525,7 +537,7 @@ def _window_class() -> type:
             dist = 0.5 * self.diag / math.tan(math.radians(0.5 * cam.GetViewAngle())) * 1.05
             self.plotter.camera_position = [tuple(centre + d * dist), tuple(centre), tuple(cam.GetViewUp())]
             self.plotter.renderer.ResetCameraClippingRange()
-            self.plotter.render()
+            self._render()
 
         def orbit(self, frames: int, degrees: float) -> list[float]:
             """Turn the camera `frames` times by `degrees` about the vertical through its focal point,
@@ -558,7 +570,7 @@ def _window_class() -> type:
             ]
             cam.SetViewAngle(float(vp.get("view_angle", 30.0)))
             self.plotter.renderer.ResetCameraClippingRange()
-            self.plotter.render()
+            self._render()
 
         def _default_path(self, suffix: str) -> Path:
             base = self.source if self.source.is_dir() else self.source.parent
@@ -619,7 +631,7 @@ def _window_class() -> type:
             )
             self.timings["panel_s"] = time.perf_counter() - t0
             self._show_panel()
-            self.plotter.render()
+            self._render()
 
         def _follow_camera(self) -> None:
             T = self.map.keyframes.T_wc[self.kf_row]
@@ -657,7 +669,7 @@ def _window_class() -> type:
                 current.SetVisibility(not self.follow)
             if on and len(self.map.keyframes):
                 self._follow_camera()
-            self.plotter.render()
+            self._render()
 
         def toggle_follow(self) -> None:
             self.follow_box.toggle()
@@ -738,7 +750,7 @@ def _window_class() -> type:
                     reset_camera=False,
                     render=False,
                 )
-            self.plotter.render()
+            self._render()
 
         def _draw_measure(self) -> None:
             col = [c / 255 for c in HIGHLIGHT_RGB]
@@ -770,14 +782,14 @@ def _window_class() -> type:
             else:
                 self.plotter.remove_actor("measure_line", render=False)
                 self.pick_label.setText("measure: shift+click a second point")
-            self.plotter.render()
+            self._render()
 
         def clear_pick(self) -> None:
             self.picked, self.measure = None, []
             for name in ("picked", "seeing", "measure_pts", "measure_line"):
                 self.plotter.remove_actor(name, render=False)
             self.pick_label.setText("")
-            self.plotter.render()
+            self._render()
 
         # ---- output ---------------------------------------------------------------------------
 
