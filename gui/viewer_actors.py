@@ -9,7 +9,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from papl_mapper.exporters.scene import frustum_segments
 
 from papl_mapper.map import Map
 
@@ -50,6 +49,8 @@ def trajectory_polydata(m: Map) -> Any | None:
 
 def frusta_segments(m: Map, depth: float, rows: np.ndarray | None = None) -> np.ndarray:
     """(8k, 2, 3) frustum edges of the keyframes at `rows` (all when None)."""
+
+    from papl_mapper.exporters.scene import frustum_segments  # after the first frame: it imports scipy
 
     if len(m.keyframes) == 0:
         return np.zeros((0, 2, 3))

@@ -13,14 +13,16 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from papl_mapper.errors import PaplError
-from papl_mapper.frontend.lines import LineConfig, SegmentDetector
-from papl_mapper.frontend.video import open_recording
 from papl_mapper.map import Map
+
+if TYPE_CHECKING:  # the frontend imports scipy: loaded with the first frame's panel, not before
+    from papl_mapper.frontend.lines import SegmentDetector
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +72,8 @@ class FrameSource:
         self._next = -1  # index the capture returns on its next read
         self._files: list[Path] = []
         if path.is_dir():  # the frontend's own listing, so frame indices mean the same files
+            from papl_mapper.frontend.video import open_recording
+
             try:
                 self._files = list(open_recording(path, prefetch=0).image_files)
             except PaplError as exc:
@@ -207,6 +211,8 @@ def keyframe_panel(
 
 def detector_for(run_dir: Path | None) -> SegmentDetector:
     """The run's own segment detector settings (its config.toml) when readable, else the defaults."""
+    from papl_mapper.frontend.lines import LineConfig, SegmentDetector
+
     cfg = LineConfig()
     if run_dir is not None and (run_dir / "config.toml").is_file():
         from papl_mapper.pipelines.config import RunConfig
