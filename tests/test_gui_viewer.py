@@ -219,3 +219,12 @@ def test_view_refuses_a_bad_script_before_opening(tmp_path, monkeypatch, capsys)
     code = main(["view", str(DEMO / "gt" / "map.papl"), "--script", str(script)])
     err = capsys.readouterr().err.strip()
     assert code == 2 and str(script) in err and "callable" in err
+
+
+def test_readme_lists_every_keyboard_shortcut() -> None:
+    from papl_mapper.gui.viewer_window import SHORTCUTS
+
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## The desktop viewer") : readme.index("## The map file")]
+    for keys, _, what in SHORTCUTS:
+        assert f"| `{keys}` | {what} |" in section
