@@ -1,8 +1,8 @@
 """The viewer's scripted-control hook: a JSON list of steps run in the open window, one after another.
 
-Each step is an object with "do" naming it. Keys and clicks go through Qt as a user's would
-(`key`, `click`, `click_line`); `call` invokes one of the window's actions by name; `orbit` turns
-the camera about the vertical and times each frame; `screenshot`
+Each step is an object with "do" naming it. Keys and clicks go through Qt as a user's would (`key`;
+`click` at pixel x, y or at world point xyz; `click_line` by id); `call` invokes one of the window's
+actions by name; `orbit` turns the camera about the vertical and times each frame; `screenshot`
 grabs the window from the screen (what a user sees), `render` only the 3D view, `state` writes
 `ViewerWindow.state()` as JSON; `wait` lets the event loop run; `quit` closes the window. Tests
 use it under Xvfb, and `papl-map view --script FILE` exposes it to users for reproducible shots.
@@ -19,7 +19,7 @@ import numpy as np
 
 from papl_mapper.errors import InputError
 
-from .viewer_pick import clearest_spot
+from .viewer_pick import clearest_spot, to_pixels
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +108,10 @@ def _run_step(win: Any, s: dict[str, Any]) -> int:
         seq = _key(s["keys"])
         QTest.keyClick(win.plotter.interactor, seq[0], seq[1])  # as typed with the pointer on the 3D view
     elif do in ("click", "click_line"):
-        if do == "click":
+        if do == "click" and "xyz" in s:  # a world point: where it is on screen now
+            px, _ = to_pixels(win.world_to_ndc(), np.asarray([s["xyz"]], np.float64), win.view_size())
+            x, y = (float(v) for v in px[0])
+        elif do == "click":
             x, y = float(s["x"]), float(s["y"])
         else:
             x, y = line_on_screen(win, int(s["id"]))

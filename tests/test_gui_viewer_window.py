@@ -83,7 +83,9 @@ def demo_run(display, tmp_path_factory):
     vertical = m.axes.vertical_index
     # the longest vertical line: the one the pick test clicks
     rows = np.flatnonzero(axis == vertical)
-    pick_id = int(m.lines.ids[rows[np.argmax(m.lines.lengths()[rows])]])
+    pick_row = rows[np.argmax(m.lines.lengths()[rows])]
+    pick_id = int(m.lines.ids[pick_row])
+    ends = m.lines.endpoints_w[pick_row]
     o = tmp / "out"
     steps = [
         {"do": "wait", "ms": 300},
@@ -100,6 +102,24 @@ def demo_run(display, tmp_path_factory):
         {"do": "state", "path": str(o / "picked.json")},
         {"do": "screenshot", "path": str(o / "picked.png")},
         {"do": "key", "keys": "Esc"},
+        {"do": "click", "xyz": ends[0].tolist(), "shift": True},
+        {"do": "click", "xyz": ends[1].tolist(), "shift": True},
+        {"do": "state", "path": str(o / "measured.json")},
+        {"do": "key", "keys": "Esc"},
+        {"do": "call", "method": "save_viewpoint", "kwargs": {"path": str(o / "vp.json")}},
+        {"do": "key", "keys": "T"},
+        {"do": "state", "path": str(o / "top.json")},
+        {"do": "key", "keys": "Ctrl+O"},  # restores the default file: not the one saved above
+        {"do": "call", "method": "restore_viewpoint", "kwargs": {"path": str(o / "vp.json")}},
+        {"do": "state", "path": str(o / "restored.json")},
+        {"do": "key", "keys": "P"},
+        {"do": "key", "keys": "+"},
+        {"do": "state", "path": str(o / "no_points.json")},
+        {"do": "key", "keys": "P"},
+        {"do": "key", "keys": "Space"},
+        {"do": "wait", "ms": 1200},
+        {"do": "key", "keys": "Space"},
+        {"do": "state", "path": str(o / "played.json")},
         {"do": "call", "method": "save_png", "kwargs": {"path": str(o / "saved.png")}},
         {"do": "key", "keys": "C"},  # the 3D camera follows the walk
         {"do": "call", "method": "set_keyframe", "kwargs": {"row": 10}},
@@ -208,3 +228,23 @@ def test_old_map_without_lines_or_recording_opens_and_says_why(display, tmp_path
     s = json.loads(out.read_text())
     assert s["lines"] == 0 and "no lines in this map" in s["status"]
     assert not s["panel"]["has_frame"] and "does not record its recording" in s["panel"]["caption"]
+
+
+def test_measuring_two_endpoints_gives_their_distance(demo_run) -> None:
+    m, pick_id, state, _ = demo_run
+    row = int(np.flatnonzero(m.lines.ids == pick_id)[0])
+    s = state["measured"]
+    assert s["measured"] == pytest.approx(float(m.lines.lengths()[row]), abs=1e-6)
+    assert s["pick_text"] == f"distance {s['measured']:.3f} m"
+
+
+def test_viewpoint_restores_and_keys_reach_points_and_play(demo_run) -> None:
+    _, _, state, _ = demo_run
+    top, restored = state["top"]["viewpoint"], state["restored"]["viewpoint"]
+    before = state["measured"]["viewpoint"]  # the view when it was saved
+    assert not np.allclose(top["position"], before["position"])
+    assert np.allclose(restored["position"], before["position"])
+    assert np.allclose(restored["view_up"], before["view_up"])
+    assert state["no_points"]["show_points"] is False and state["no_points"]["point_size"] == 4.0
+    played = state["played"]
+    assert played["playing"] is False and played["keyframe_row"] >= 2  # 4 keyframes a second for ~1.2 s
