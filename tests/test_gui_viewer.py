@@ -221,6 +221,21 @@ def test_view_refuses_a_bad_script_before_opening(tmp_path, monkeypatch, capsys)
     assert code == 2 and str(script) in err and "callable" in err
 
 
+def test_unreachable_display_is_refused_in_one_line_naming_it() -> None:
+    import os
+
+    from papl_mapper.cli.view import finish_probe, start_probe
+    from papl_mapper.errors import BackendUnavailableError
+
+    env = {**os.environ, "DISPLAY": ":4321"}  # no X server there: Qt aborts the probe, not this process
+    with pytest.raises(BackendUnavailableError) as err:
+        finish_probe(start_probe(env), env)
+    msg = str(err.value)
+    assert (
+        "\n" not in msg and "display :4321" in msg and "papl-map render" in msg and "papl-map report" in msg
+    )
+
+
 def test_readme_lists_every_keyboard_shortcut() -> None:
     from papl_mapper.gui.viewer_window import SHORTCUTS
 

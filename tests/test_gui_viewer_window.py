@@ -248,3 +248,12 @@ def test_viewpoint_restores_and_keys_reach_points_and_play(demo_run) -> None:
     assert state["no_points"]["show_points"] is False and state["no_points"]["point_size"] == 4.0
     played = state["played"]
     assert played["playing"] is False and played["keyframe_row"] >= 2  # 4 keyframes a second for ~1.2 s
+
+
+def test_more_lines_than_the_renderer_holds_are_decimated_and_the_window_says_so(display, tmp_path) -> None:
+    out = tmp_path / "state.json"
+    steps = [{"do": "state", "path": str(out)}]
+    run_viewer(DEMO / "gt" / "map.papl", steps, display, tmp_path, "--max-lines", "50", "--no-detect")
+    s = json.loads(out.read_text())
+    assert s["drawn"] == 50 and s["passing"] == s["lines"] > 50
+    assert f"decimated: 50 of {s['lines']} lines drawn" in s["status"]

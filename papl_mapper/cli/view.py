@@ -82,6 +82,8 @@ def finish_probe(proc: subprocess.Popen, env: dict[str, str] | None = None) -> N
     tail = hint or (lines[-1] if lines else f"exit code {proc.returncode}")
     if words[:1] == ["PAPL_PROBE"]:
         tail = f"{words[1]} has no usable OpenGL"
+    if "could not connect" in tail:
+        raise BackendUnavailableError(f"no X server answers on display {display}; {_ELSEWHERE}")
     raise BackendUnavailableError(
         f"cannot open an OpenGL window on display {display} ({tail[-200:]}); install the set-up's "
         f"system packages (scripts/setup.sh: Qt's xcb libraries, libgl1), or {_ELSEWHERE}"
