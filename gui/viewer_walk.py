@@ -120,16 +120,18 @@ def open_frames(m: Map, run_dir: Path | None) -> tuple[FrameSource | None, str]:
     places = recording_candidates(m, run_dir)
     if not places:
         return None, "this map does not record its recording (made before the viewer, or by hand)"
-    faults = []
+    missing, faults = [], []
     for p in places:
         if not p.exists():
-            faults.append(f"{p}: not found")
+            missing.append(str(p))
             continue
         try:
             return FrameSource(p, size), ""
         except OSError as exc:
             faults.append(str(exc))
-    return None, "recording not found: " + "; ".join(faults)
+    if missing:
+        faults.insert(0, "recording not found, looked for " + " and ".join(missing))
+    return None, "; ".join(faults)
 
 
 def reproject_lines(
@@ -230,20 +232,19 @@ def _message_card(size: tuple[int, int], text: str) -> np.ndarray:
     """A dark card of `size` with `text` wrapped across it (the 2D panel when there is no frame)."""
     w, h = size
     img = np.full((h, w, 3), PANEL_BG, np.uint8)
-    scale = max(0.5, w / 1400)
-    words, lines, cur = text.split(), [], ""
-    limit = max(20, int(w / (11 * scale)))
-    for word in words:
-        if len(cur) + len(word) + 1 > limit and cur:
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, max(0.6, w / 900)
+    lines, cur = [], ""
+    for word in text.split():
+        trial = f"{cur} {word}".strip()
+        if cur and cv2.getTextSize(trial, font, scale, 1)[0][0] > 0.92 * w:
             lines.append(cur)
             cur = word
         else:
-            cur = f"{cur} {word}".strip()
+            cur = trial
     lines.append(cur)
-    y = int(h * 0.4)
+    step = int(cv2.getTextSize("Ag", font, scale, 1)[0][1] * 2.0)
+    y = max(step, (h - step * len(lines)) // 2)
     for line in lines:
-        cv2.putText(
-            img, line, (int(0.04 * w), y), cv2.FONT_HERSHEY_SIMPLEX, scale, (235, 235, 235), 1, cv2.LINE_AA
-        )
-        y += int(34 * scale)
+        cv2.putText(img, line, (int(0.04 * w), y), font, scale, (235, 235, 235), 1, cv2.LINE_AA)
+        y += step
     return img
