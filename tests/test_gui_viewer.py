@@ -156,7 +156,8 @@ def test_panel_shows_the_keyframes_own_frame_under_its_reprojected_lines(gt_map:
 def test_moved_or_unrecorded_recording_gives_a_panel_naming_where_it_looked(gt_map: Map, tmp_path) -> None:
     gone = tmp_path / "moved" / "video.mp4"
     frames, why = open_frames(with_recording(gt_map, gone), tmp_path)
-    assert frames is None and why == f"recording not found, looked for {gone}"
+    # where the map says, then the same name beside the run folder
+    assert frames is None and why == f"recording not found, looked for {gone} and {tmp_path / 'video.mp4'}"
     scene = ViewerScene.from_map(gt_map)
     panel = keyframe_panel(gt_map, 0, None, why, scene.endpoints_w, scene.line_rgb, None)
     assert not panel.has_frame and panel.caption == why and panel.image.shape == (480, 640, 3)
