@@ -1,4 +1,4 @@
-"""Off-screen previews and the HTML map report; import as papl_mapper.gui.
+"""Off-screen previews, the HTML map report and the desktop viewer; import as papl_mapper.gui.
 
 Public surface:
 - `render_previews(map, out_dir, options=None) -> list[Path]`: isometric/top/front/side PNGs coloured by axis.
