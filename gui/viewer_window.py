@@ -56,6 +56,10 @@ class ViewerOptions:
     """Keyframes per second while the walkthrough plays."""
     detect_segments: bool = True
     """Detect segments in the 2D panel's frame (the run's own detector settings)."""
+    multi_samples: int = 8
+    """Antialiasing samples per pixel; 1 turns it off (the CLI does on a software renderer)."""
+    renderer: str = ""
+    """The OpenGL renderer's name as the display probe found it (shown in the status line)."""
 
 
 SHORTCUTS: tuple[tuple[str, str, str], ...] = (
@@ -212,7 +216,7 @@ def _window_class() -> type:
             central = QtWidgets.QWidget(self)
             row = QtWidgets.QHBoxLayout(central)
             row.setContentsMargins(4, 4, 4, 4)
-            self.plotter = QtInteractor(central, auto_update=False)
+            self.plotter = QtInteractor(central, auto_update=False, multi_samples=self.options.multi_samples)
             self.plotter.set_background([c / 255 for c in THEMES["white"]["background"]])
             self.plotter.enable_trackball_style()
             row.addWidget(self.plotter.interactor, stretch=3)
@@ -843,6 +847,9 @@ def _window_class() -> type:
                 notes.append(self.selection.note)
             if self.scene.rms_px is None:
                 notes.append("computing reprojection errors...")
+            if self.options.renderer:
+                aa = "antialiasing off" if self.options.multi_samples <= 1 else "antialiased"
+                notes.append(f"OpenGL: {self.options.renderer} ({aa})")
             note = getattr(self, "status_note", "")
             if note:
                 notes.append(note)

@@ -23,8 +23,12 @@ _PROBE = (
     "app = QApplication(['probe'])\n"
     "import vtkmodules.vtkRenderingOpenGL2, vtkmodules.vtkRenderingCore as rc\n"
     "w = rc.vtkRenderWindow(); w.SetOffScreenRendering(1); w.SetSize(8, 8); w.Render()\n"
-    "print('PAPL_PROBE', w.GetClassName(), int(w.SupportsOpenGL()))\n"
+    "gl = [l.split(':', 1)[1].strip() for l in w.ReportCapabilities().splitlines()\n"
+    "      if l.startswith('OpenGL renderer string')]\n"
+    "print('PAPL_PROBE', w.GetClassName(), int(w.SupportsOpenGL()), *(gl or ['unknown']))\n"
 )
+#: OpenGL renderers that draw on the CPU: multisampling multiplies their frame time, so it is off.
+SOFTWARE_GL = ("llvmpipe", "softpipe", "swrast", "software")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -66,8 +70,9 @@ def start_probe(env: dict[str, str] | None = None) -> subprocess.Popen:
     )
 
 
-def finish_probe(proc: subprocess.Popen, env: dict[str, str] | None = None) -> None:
-    """Wait for the probe; raise BackendUnavailableError naming the display and the fault when it failed."""
+def finish_probe(proc: subprocess.Popen, env: dict[str, str] | None = None) -> str:
+    """Wait for the probe and return the OpenGL renderer's name; raise BackendUnavailableError naming
+    the display and the fault when no window can open."""
     display = (env or os.environ).get("DISPLAY") or (env or os.environ).get("WAYLAND_DISPLAY")
     try:
         out, err = proc.communicate(timeout=120)
@@ -76,7 +81,7 @@ def finish_probe(proc: subprocess.Popen, env: dict[str, str] | None = None) -> N
         raise BackendUnavailableError(f"opening a window on display {display} hangs; {_ELSEWHERE}") from None
     words = out.split()
     if proc.returncode == 0 and len(words) >= 3 and words[0] == "PAPL_PROBE" and words[2] == "1":
-        return
+        return " ".join(words[3:])
     lines = [ln.strip() for ln in err.splitlines() if ln.strip()]
     hint = next((ln for ln in lines if "could not connect" in ln or "Could not load" in ln), None)
     tail = hint or (lines[-1] if lines else f"exit code {proc.returncode}")
@@ -135,9 +140,16 @@ def run(args: argparse.Namespace) -> int:
     except BaseException:
         probe.kill()
         raise
-    finish_probe(probe)
+    renderer = finish_probe(probe)
 
-    options = ViewerOptions(width=width, height=height, detect_segments=not args.no_detect)
+    software = any(name in renderer.lower() for name in SOFTWARE_GL)
+    options = ViewerOptions(
+        width=width,
+        height=height,
+        detect_segments=not args.no_detect,
+        multi_samples=1 if software else 8,
+        renderer=renderer,
+    )
     if args.max_lines is not None:
         options.max_lines = args.max_lines
     return open_viewer(m, src, options, args.script, keyframe=args.keyframe, started=t0)
