@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from papl_mapper.errors import BackendUnavailableError, InputError
@@ -128,18 +129,25 @@ def run(args: argparse.Namespace) -> int:
         from papl_mapper.gui.viewer_control import load_script
 
         load_script(args.script)  # a bad script is refused before any window opens
-    probe = start_probe()  # runs while the map loads and the window's libraries import
+    path = _map_path(src)
+    # three things at once: the probe (a child), the map load (a thread: reading and numpy release
+    # the GIL) and the window's imports (here); importing is safe without a display, opening is not
+    probe = start_probe()
+    pool = ThreadPoolExecutor(1, thread_name_prefix="map-load")
     try:
-        m = Map.load(_map_path(src))
-        if len(m.keyframes) and not 0 <= args.keyframe < len(m.keyframes):
-            raise InputError(f"--keyframe {args.keyframe}: the map has keyframes 0..{len(m.keyframes) - 1}")
+        loading = pool.submit(Map.load, path)
         os.environ.setdefault("QT_LOGGING_RULES", "*.debug=false")
         from papl_mapper.gui.viewer_window import ViewerOptions, import_window_libraries, open_viewer
 
-        import_window_libraries()  # importing is safe without a display; opening a window is not
+        import_window_libraries()
+        m = loading.result()
+        if len(m.keyframes) and not 0 <= args.keyframe < len(m.keyframes):
+            raise InputError(f"--keyframe {args.keyframe}: the map has keyframes 0..{len(m.keyframes) - 1}")
     except BaseException:
         probe.kill()
         raise
+    finally:
+        pool.shutdown(wait=True)
     renderer = finish_probe(probe)
 
     software = any(name in renderer.lower() for name in SOFTWARE_GL)
