@@ -146,10 +146,11 @@ open(out_path, "w").write(json.dumps(res))
 # ---- parent -----------------------------------------------------------------------------------------
 
 
-def _run(cmd: list[str], env: dict, timeout: float) -> tuple[int | None, float, float]:
-    """Run a child; (exit code or None on timeout, wall seconds, its peak RSS in MiB)."""
+def _run(cmd: list[str], env: dict, timeout: float, log: Path) -> tuple[int | None, float, float]:
+    """Run a child (its output into `log`); (exit code or None on timeout, wall seconds, peak RSS MiB)."""
     t = time.time()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    with log.open("w") as err:
+        proc = subprocess.Popen(cmd, env=env, stdout=err, stderr=subprocess.STDOUT)
     deadline = t + timeout
     while time.time() < deadline:
         pid, status, ru = os.wait4(proc.pid, os.WNOHANG)
@@ -169,7 +170,7 @@ def measure_viewer(map_path: Path, frames: int, env: dict, tmp: Path) -> dict:
     script.write_text(json.dumps(steps + [{"do": "quit"}]))
     t0 = time.time()
     cmd = [sys.executable, "-m", "papl_mapper.cli", "view", str(map_path), "--script", str(script)]
-    code, wall, rss = _run(cmd + ["--no-detect"], env, 600)
+    code, wall, rss = _run(cmd + ["--no-detect"], env, 600, tmp / "viewer.log")
     if code != 0:
         return {"error": f"exit {code}"}
     s = json.loads(state.read_text())
@@ -189,15 +190,17 @@ def measure_open3d(map_path: Path, frames: int, env: dict, tmp: Path, timeout: f
     out = tmp / "o3d.json"
     out.unlink(missing_ok=True)
     t0 = time.time()
-    code, wall, rss = _run(
-        [sys.executable, "-c", _O3D_CHILD, str(map_path), str(frames), str(out)], env, timeout
-    )
+    cmd = [sys.executable, "-c", _O3D_CHILD, str(map_path), str(frames), str(out)]
+    code, wall, rss = _run(cmd, env, timeout, tmp / "o3d.log")
+    lines = (tmp / "o3d.log").read_text().splitlines()
+    device = next((ln.split("'")[1] for ln in lines if "physical device '" in ln), "unknown")
     if code is None:
-        return {"error": f"no frame within {timeout:.0f} s", "wall_s": wall}
+        return {"error": f"no frame within {timeout:.0f} s", "wall_s": wall, "vulkan_device": device}
     if code != 0 or not out.exists():
-        return {"error": f"exit {code}"}
+        return {"error": f"exit {code}", "vulkan_device": device}
     r = json.loads(out.read_text())
     return {
+        "vulkan_device": device,
         "first_frame_from_launch_s": r["first_frame_unix"] - t0,
         "orbit_frame_median_s": float(np.median(r["orbit_frame_s"])),
         "orbit_frame_max_s": float(np.max(r["orbit_frame_s"])),
@@ -265,7 +268,7 @@ def main() -> None:
 
     results["decimation_threshold_lines"] = ViewerOptions().max_lines
     results["goal_first_frame_s"] = GOAL_FIRST_FRAME_S
-    results["renderer"] = _renderer_names(env)
+    results["vtk_opengl_renderer"] = _gl_renderer(env)
     results["machine"] = machine_info()
     results["commit"] = git_commit()
     out = ROOT / "benchmarks" / "results" / "viewer.json"
@@ -273,14 +276,11 @@ def main() -> None:
     print(f"wrote {out}")
 
 
-def _renderer_names(env: dict) -> dict:
-    code = (
-        "import vtkmodules.vtkRenderingOpenGL2, vtkmodules.vtkRenderingCore as rc\n"
-        "w = rc.vtkRenderWindow(); w.SetOffScreenRendering(1); w.Render()\n"
-        "print([l for l in w.ReportCapabilities().splitlines() if 'renderer' in l.lower()][0])\n"
-    )
-    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
-    return {"vtk_opengl": p.stdout.strip(), "open3d_vulkan": "lavapipe (Mesa software Vulkan)"}
+def _gl_renderer(env: dict) -> str:
+    """The OpenGL renderer VTK gets on the display (as `papl-map view`'s probe reports it)."""
+    from papl_mapper.cli.view import finish_probe, start_probe
+
+    return finish_probe(start_probe(env), env)
 
 
 def _print_row(n: int, row: dict) -> None:

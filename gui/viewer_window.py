@@ -186,6 +186,7 @@ def _window_class() -> type:
             self.kf_row = int(keyframe)
             self.picked: LineFacts | None = None
             self.measure: list[np.ndarray] = []
+            self.measured: float | None = None
             self.panel: Panel | None = None
             self.frames, self.why_no_frames = None, ""
             self.detector = None
@@ -695,8 +696,6 @@ def _window_class() -> type:
         # ---- picking and measuring ------------------------------------------------------------
 
         def world_to_ndc(self) -> np.ndarray:
-            from vtkmodules.util.numpy_support import vtk_to_numpy  # noqa: F401 (keeps vtk loaded)
-
             w, h = self.plotter.interactor.width(), self.plotter.interactor.height()
             mat = self.plotter.camera.GetCompositeProjectionTransformMatrix(w / max(h, 1), -1, 1)
             return np.array([[mat.GetElement(i, j) for j in range(4)] for i in range(4)])
@@ -789,7 +788,7 @@ def _window_class() -> type:
             self._render()
 
         def clear_pick(self) -> None:
-            self.picked, self.measure = None, []
+            self.picked, self.measure, self.measured = None, [], None
             for name in ("picked", "seeing", "measure_pts", "measure_line"):
                 self.plotter.remove_actor(name, render=False)
             self.pick_label.setText("")
@@ -888,7 +887,7 @@ def _window_class() -> type:
                     "reprojected": self.panel.n_reprojected,
                 },
                 "picked": None if self.picked is None else self.picked.__dict__,
-                "measured": getattr(self, "measured", None) if len(self.measure) == 2 else None,
+                "measured": self.measured if len(self.measure) == 2 else None,
                 "screen_length_px": self.screen_lengths(),
                 "view_rect": self._rect(self.plotter.interactor),
                 "panel_rect": self._rect(self.image_label),
