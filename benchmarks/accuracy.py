@@ -44,10 +44,10 @@ def _commit() -> str:
     return git_commit()
 
 
-def _recording(cache: Path, scene: str, noise: float, seconds: float) -> Path:
-    folder = cache / f"{scene}_noise{noise:g}_{seconds:g}s"
+def _recording(cache: Path, scene: str, noise: float, seconds: float, seed: int = 0) -> Path:
+    folder = cache / f"{scene}_noise{noise:g}_{seconds:g}s{f'_seed{seed}' if seed else ''}"
     if not (folder / "video.mp4").exists():
-        generate(SynthConfig(scene=scene, seconds=seconds, noise_sigma=noise, seed=0), folder)
+        generate(SynthConfig(scene=scene, seconds=seconds, noise_sigma=noise, seed=seed), folder)
     return folder
 
 
@@ -82,6 +82,8 @@ def main() -> int:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/papl_accuracy"))
     ap.add_argument("--out", type=Path, default=OUT, help="results JSON")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--seeds", default="0", help="walk seeds per scene (the walk and the noise differ)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override, every variant")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     rows = []
@@ -91,50 +93,56 @@ def main() -> int:
     )
     print(header)
     print("-" * len(header))
-    for scene in args.scenes.split(","):
-        for noise in (float(n) for n in args.noise.split(",")):
-            folder = _recording(args.cache, scene, noise, args.seconds)
-            for variant in args.variants.split(","):
-                overrides = PRESETS[variant]
-                row = {"scene": scene, "noise": noise, "variant": variant}
-                try:
-                    tracks, fe_s = _tracks(folder, overrides, args.cache)
-                    cfg = load_config(RunConfig, None, overrides)
-                    t0 = time.perf_counter()
-                    m, _ = map_tracks(tracks, cfg)
-                    traj = frame_trajectory(tracks, m, cfg)
-                    row["map_s"] = time.perf_counter() - t0
-                    row["frontend_s"] = fe_s
-                    tum = folder / f"traj_{variant}.tum"
-                    write_tum(tum, traj)
-                    ev = evaluate(folder, m, tum)
-                    row.update(
-                        ate_rel_path=ev.ate_rmse_rel_path,
-                        ate_rmse=ev.ate_rmse,
-                        posed_fraction=ev.n_matched_poses / len(tracks),
-                        line_recall_1pct=ev.line_recall.get("1%", float("nan")),
-                        line_recall_visible_1pct=ev.line_recall_visible.get("1%", float("nan")),
-                        gt_visible_fraction=ev.gt_visible_fraction,
-                        line_precision_1pct=ev.line_precision.get("1%", float("nan")),
-                        vertical_err_deg=float(ev.axis_errors_deg[0])
-                        if len(ev.axis_errors_deg)
-                        else float("nan"),
-                        n_axes=len(m.axes),
-                        lines=len(m.lines),
-                    )
-                except Exception as exc:  # noqa: BLE001 - a failed variant is a row of the table, not the end
-                    row["error"] = f"{type(exc).__name__}: {exc}"
-                rows.append(row)
-                if "error" in row:
-                    print(f"{scene:9} {noise:5g} {variant:19} failed: {row['error'][:80]}")
-                else:
-                    print(
-                        f"{scene:9} {noise:5g} {variant:19} {_f(100 * row['ate_rel_path'], 9, 3)} "
-                        f"{_f(100 * row['posed_fraction'], 6, 1)}% {_f(row['line_recall_1pct'], 6, 3)} "
-                        f"{_f(row['line_recall_visible_1pct'], 7, 3)} {_f(row['line_precision_1pct'], 6, 3)} "
-                        f"{_f(row['vertical_err_deg'], 8, 2)} "
-                        f"{_f(row['map_s'], 6, 1)}"
-                    )
+    cases = [
+        (scene, noise, seed)
+        for seed in (int(v) for v in args.seeds.split(","))
+        for scene in args.scenes.split(",")
+        for noise in (float(n) for n in args.noise.split(","))
+    ]
+    for scene, noise, seed in cases:
+        folder = _recording(args.cache, scene, noise, args.seconds, seed)
+        label = f"{scene}#{seed}" if seed else scene
+        for variant in args.variants.split(","):
+            overrides = PRESETS[variant] + args.set
+            row = {"scene": scene, "noise": noise, "seed": seed, "variant": variant}
+            try:
+                tracks, fe_s = _tracks(folder, overrides, args.cache)
+                cfg = load_config(RunConfig, None, overrides)
+                t0 = time.perf_counter()
+                m, _ = map_tracks(tracks, cfg)
+                traj = frame_trajectory(tracks, m, cfg)
+                row["map_s"] = time.perf_counter() - t0
+                row["frontend_s"] = fe_s
+                tum = folder / f"traj_{variant}.tum"
+                write_tum(tum, traj)
+                ev = evaluate(folder, m, tum)
+                row.update(
+                    ate_rel_path=ev.ate_rmse_rel_path,
+                    ate_rmse=ev.ate_rmse,
+                    posed_fraction=ev.n_matched_poses / len(tracks),
+                    line_recall_1pct=ev.line_recall.get("1%", float("nan")),
+                    line_recall_visible_1pct=ev.line_recall_visible.get("1%", float("nan")),
+                    gt_visible_fraction=ev.gt_visible_fraction,
+                    line_precision_1pct=ev.line_precision.get("1%", float("nan")),
+                    vertical_err_deg=float(ev.axis_errors_deg[0])
+                    if len(ev.axis_errors_deg)
+                    else float("nan"),
+                    n_axes=len(m.axes),
+                    lines=len(m.lines),
+                )
+            except Exception as exc:  # noqa: BLE001 - a failed variant is a row of the table, not the end
+                row["error"] = f"{type(exc).__name__}: {exc}"
+            rows.append(row)
+            if "error" in row:
+                print(f"{label:9} {noise:5g} {variant:19} failed: {row['error'][:80]}")
+            else:
+                print(
+                    f"{label:9} {noise:5g} {variant:19} {_f(100 * row['ate_rel_path'], 9, 3)} "
+                    f"{_f(100 * row['posed_fraction'], 6, 1)}% {_f(row['line_recall_1pct'], 6, 3)} "
+                    f"{_f(row['line_recall_visible_1pct'], 7, 3)} {_f(row['line_precision_1pct'], 6, 3)} "
+                    f"{_f(row['vertical_err_deg'], 8, 2)} "
+                    f"{_f(row['map_s'], 6, 1)}"
+                )
     if not args.no_write:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(

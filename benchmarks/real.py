@@ -28,6 +28,7 @@ the peer's.
     .venv/bin/python benchmarks/real.py                          # everything (a few minutes)
     .venv/bin/python benchmarks/real.py --only kitti06_0000_0050,icl_lr_kt1_250_366
     .venv/bin/python benchmarks/real.py --skip-colmap            # papl-map only, peers from the JSON
+    .venv/bin/python benchmarks/real.py --ablation points-only,orthonormal-lines,no-axis-management
 
 Prints one table and writes benchmarks/results/real.json. With --only, the entries of the other
 sequences already in the JSON are kept (each entry names the commit it was measured at).
@@ -75,6 +76,8 @@ PHOTO_SET_INTERVAL_S = 0.5  # median frame interval above this: a photo set (exh
 SEED = 0
 METHODS = ("papl", "colmap", "glomap")
 LABELS = {"papl": "papl-map", "colmap": "COLMAP", "glomap": "GLOMAP"}
+ABLATION = ("points-only", "orthonormal-lines", "no-axis-management")
+"""The presets `--ablation` is meant for: lines off, lines unanchored, axes never updated."""
 
 
 @dataclass
@@ -202,11 +205,12 @@ def _one_line_error(stderr: str) -> str:
     return lines[-1] if lines else "(no message)"
 
 
-def run_papl(seq: Sequence, out: Path, timeout_s: float) -> dict:
-    """`papl-map run` as a subprocess, wall clock timed; a failure is recorded, not raised."""
+def run_papl(seq: Sequence, out: Path, timeout_s: float, preset: str = "full") -> dict:
+    """`papl-map run --preset` as a subprocess, wall clock timed; a failure is recorded, not raised."""
     if out.exists():
         shutil.rmtree(out)
     cmd = [str(PAPL), "run", str(seq.images), "--camera", str(seq.camera_file), "--out", str(out)]
+    cmd += ["--preset", preset] if preset != "full" else []
     rec: dict = {"command": " ".join(cmd), "loadavg_1m_at_start": _loadavg(), "frames_total": len(seq.names)}
     t0 = time.perf_counter()
     try:
@@ -464,6 +468,20 @@ def print_table(entries: dict[str, dict]) -> None:
     )
 
 
+def print_ablation(entries: dict[str, dict]) -> None:
+    """ATE (m) of papl-map's full method and of each ablation preset, per sequence, one run."""
+    presets = sorted({p for e in entries.values() for p in e.get("papl_ablation", {})})
+    print()
+    print(f"{'sequence':24} {'full':>9} " + " ".join(f"{p:>18}" for p in presets))
+    for name, e in entries.items():
+        cells = [_f(e["papl"].get("ate_rmse_m"), ".4f", 9)]
+        for p in presets:
+            rec = e.get("papl_ablation", {}).get(p, {})
+            cells.append(_f(rec.get("ate_rmse_m") if rec.get("status") == "ok" else None, ".4f", 18))
+        print(f"{name:24} " + " ".join(cells))
+    print("ATE RMSE (m) after Sim(3); presets as `papl-map run --preset` (see `papl-map run --help`).")
+
+
 def _finite(v):
     """The document with NaN/inf as null and numpy scalars as Python numbers (strict JSON)."""
     if isinstance(v, dict):
@@ -503,6 +521,11 @@ def main() -> int:
     ap.add_argument("--papl-timeout", type=float, default=3600.0, help="seconds per papl-map run")
     ap.add_argument("--verbose", action="store_true", help="keep COLMAP's log output")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument(
+        "--ablation",
+        default="",
+        help=f"papl-map presets also run on every sequence, comma-separated (e.g. {','.join(ABLATION)})",
+    )
     args = ap.parse_args()
     if not args.data.is_dir():
         print(f"{args.data}: no such folder; the real sequences live in ../shared/data/real")
@@ -544,6 +567,9 @@ def main() -> int:
         }
         print(f"{seq.name}: {len(seq.names)} images, {seq.matching} matching for the peers", flush=True)
         entry["papl"] = run_papl(seq, args.out_dir / seq.name / "papl", args.papl_timeout)
+        for preset in filter(None, args.ablation.split(",")):
+            rec = run_papl(seq, args.out_dir / seq.name / f"papl-{preset}", args.papl_timeout, preset)
+            entry.setdefault("papl_ablation", {})[preset] = rec
         if args.skip_colmap:
             old = previous.get(seq.name, {})
             for peer in ("colmap", "glomap"):
@@ -570,6 +596,8 @@ def main() -> int:
         entries[seq.name] = entry
     print()
     print_table(entries)
+    if args.ablation:
+        print_ablation(entries)
     machine = {**machine_start, "loadavg_1m_at_end": _loadavg()}
     if git_commit() != commit:  # the checkout moved on while the benchmark ran
         machine["git_commit_at_end"] = git_commit()

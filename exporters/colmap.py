@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from papl_mapper.errors import InputError
 from papl_mapper.map import Camera, Map
 
-from .scene import ExportOptions, check_finite
+from .scene import ExportOptions, check_finite, header_text, scale_note
 from .text import format_rows
 
 log = logging.getLogger(__name__)
@@ -79,6 +79,10 @@ def export_colmap(m: Map, options: ExportOptions | None = None) -> dict[str, byt
     cameras = b"# Camera list with one line of data per camera:\n"
     cameras += b"#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
     cameras += b"# Number of cameras: 1\n"
+    units = (
+        f"# Units: {header_text(m.metadata.get('units', 'arbitrary'), 40)}; scale {scale_note(m.metadata)}\n"
+    )
+    cameras += units.encode()
     cameras += f"1 {model} {m.camera.width} {m.camera.height} ".encode()
     cameras += " ".join(f"{p:.17g}" for p in params).encode() + b"\n"
     if len(kf) == 0:
@@ -128,6 +132,7 @@ def export_colmap(m: Map, options: ExportOptions | None = None) -> dict[str, byt
         b"#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n",
         b"#   POINTS2D[] as (X, Y, POINT3D_ID)\n",
         f"# Number of images: {len(kf)}, mean observations per image: {mean_obs:.6g}\n".encode(),
+        units.encode(),
     ]
     for i in range(len(kf)):
         images.append(pose_rows[i] + b" " + names[i].encode() + b"\n")
@@ -138,6 +143,7 @@ def export_colmap(m: Map, options: ExportOptions | None = None) -> dict[str, byt
         b"# 3D point list with one line of data per point:\n",
         b"#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n",
         f"# Number of points: {n_pts}, mean track length: {len(obs) / max(n_pts, 1):.6g}\n".encode(),
+        units.encode(),
     ]
     if n_pts:
         err = np.zeros(n_pts)

@@ -192,6 +192,7 @@ def scene_extras(scene: ExportScene) -> dict[str, Any]:
     return {
         "units": scene.units,
         "meters_per_unit": scene.meters_per_unit,
+        "scale": scene.scale_note,
         "source_up_axis": "+Z (converted to glTF +Y up: x, z, -y)",
         "axes": axes,
         "generator": "papl-mapper",

@@ -24,7 +24,7 @@ def _v_constant(rgb: tuple[int, int, int]) -> str:
 
 
 def scene_to_obj(scene: ExportScene) -> bytes:
-    out = [f"# papl-mapper map; units {scene.units}; up +Z\n".encode()]
+    out = [f"# papl-mapper map; units {scene.units}; up +Z\n# scale {scene.scale_note}\n".encode()]
     for a in scene.axis_info:
         d = a["direction"]
         out.append(f"# axis {a['index']} {a['name']} direction {d[0]:.9g} {d[1]:.9g} {d[2]:.9g}\n".encode())

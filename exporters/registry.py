@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import re
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -20,7 +21,7 @@ from papl_mapper.atomic import output_mode
 from papl_mapper.errors import ConfigError, InputError
 from papl_mapper.map import Map
 
-from . import colmap, dxf, gltf, obj, ply, trajectory, tubes, usd
+from . import colmap, drawing, dxf, gltf, obj, ply, trajectory, tubes, usd
 from .scene import ExportOptions
 
 log = logging.getLogger(__name__)
@@ -29,7 +30,7 @@ Exporter = Callable[[Map, ExportOptions], "bytes | dict[str, bytes]"]
 
 #: suffix (with its dot, lower case) -> pure export function
 REGISTRY: dict[str, Exporter] = {}
-for _module in (ply, gltf, usd, dxf, obj, tubes, trajectory, colmap):
+for _module in (ply, gltf, usd, dxf, obj, tubes, trajectory, colmap, drawing):
     REGISTRY.update(_module.FORMATS)
 #: suffixes whose export is a folder of files (dict name -> bytes)
 FOLDER_FORMATS = frozenset(colmap.FORMATS)
@@ -50,6 +51,9 @@ def suffix_of(path: str | os.PathLike, format: str | None = None) -> str:
             )
         return key
     name = Path(path).name.lower()
+    view = _VIEW_NAME.search(name)
+    if view:
+        return f".{view['kind']}.{view['ext']}"
     for s in supported_suffixes():
         if name.endswith(s) and len(name) > len(s):
             return s
@@ -57,6 +61,18 @@ def suffix_of(path: str | os.PathLike, format: str | None = None) -> str:
         f"{path}: unknown export suffix {Path(path).suffix or '(none)'!r}; "
         f"supported: {', '.join(supported_suffixes())}"
     )
+
+
+#: plan.dxf, site.plan.svg, elevation-2.dxf, map.elevation-1.svg: the CAD views by file name
+_VIEW_NAME = re.compile(r"(?:^|[._-])(?P<kind>plan|elevation)(?:-(?P<axis>\d+))?\.(?P<ext>dxf|svg)$")
+
+
+def view_options(path: str | os.PathLike, options: ExportOptions) -> ExportOptions:
+    """`options` with `elevation_axis` from a file name such as elevation-2.svg (1 when it names none)."""
+    view = _VIEW_NAME.search(Path(path).name.lower())
+    if view and view["kind"] == "elevation" and view["axis"]:
+        return dataclasses.replace(options, elevation_axis=int(view["axis"]))
+    return options
 
 
 def export(
@@ -79,7 +95,7 @@ def export(
         options = dataclasses.replace(options, **overrides)
     path = Path(path)
     key = suffix_of(path, format)
-    data = REGISTRY[key](m, options)
+    data = REGISTRY[key](m, view_options(path, options))
     if isinstance(data, dict):
         if path.exists() and not path.is_dir():
             raise InputError(f"{path}: exists and is not a folder; the {key} export writes a folder of files")

@@ -16,6 +16,7 @@ import numpy as np
 from papl_mapper.errors import ConfigError, MapFormatError
 from papl_mapper.map import Map
 from papl_mapper.palette import PALETTES, UNANCHORED_RGB, axis_colors, axis_names
+from papl_mapper.scale.estimate import units_note
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,16 @@ class ExportOptions:
     """Frusta: depth of each camera frustum as a fraction of the scene's bounding-box diagonal."""
     image_name: str = "frame_{frame_index:06d}.png"
     """COLMAP: image file name pattern, formatted with the keyframe's id and frame_index."""
+    cad_min_observations: int = 3
+    """CAD exports (DXF, plan, elevation): lines seen in fewer keyframes than this are stray."""
+    cad_stray_margin: float = 3.0
+    """CAD exports: geometry beyond the structure's interquartile box by more than this many times its
+    size (Tukey's far-out fences) is stray."""
+    elevation_axis: int = 1
+    """Elevation: the horizontal axis (1-based, as in 'horizontal 1') to look along; a file named
+    elevation-K.dxf or .svg sets it to K."""
+    keep_stray: bool = False
+    """CAD exports: keep stray lines and points (on a STRAY layer that is off) instead of leaving them out."""
 
     def check(self) -> None:
         """Raise ConfigError naming the first option with an impossible value."""
@@ -60,6 +71,14 @@ class ExportOptions:
             raise ConfigError(
                 f"export option palette: unknown {self.palette!r}; choose one of {sorted(PALETTES)}"
             )
+        if self.elevation_axis < 1:
+            raise ConfigError(f"export option elevation_axis must be >= 1, got {self.elevation_axis}")
+        if self.cad_min_observations < 0:
+            raise ConfigError(
+                f"export option cad_min_observations must be >= 0, got {self.cad_min_observations}"
+            )
+        if not (np.isfinite(self.cad_stray_margin) and self.cad_stray_margin >= 0):
+            raise ConfigError(f"export option cad_stray_margin must be >= 0, got {self.cad_stray_margin}")
         if self.min_observations < 0:
             raise ConfigError(f"export option min_observations must be >= 0, got {self.min_observations}")
         if self.tube_sides < 3:
@@ -87,6 +106,7 @@ class SegmentGroup:
     ids: np.ndarray  # (S,) int64: line ids (keyframe ids for frusta)
     axis_index: int = -1  # the map's axis index, -1 when not an axis
     direction_w: np.ndarray | None = None  # (3,) the axis direction, when an axis
+    observations: np.ndarray | None = None  # (S,) keyframes that saw each line, when lines
 
 
 @dataclass
@@ -103,6 +123,8 @@ class ExportScene:
     units: str
     diagonal: float  # robust bounding-box diagonal of everything exported (1.0 when empty)
     axis_info: list[dict] = field(default_factory=list)  # name, direction, colour per axis
+    scale_note: str = "arbitrary (monocular scale unknown)"  # how the units were found, one safe line
+    vertical_index: int = -1  # the map's vertical axis, -1 when none
 
     @property
     def n_segments(self) -> int:
@@ -127,8 +149,72 @@ class ExportScene:
         """Metres per map unit when the units are known, None for arbitrary (monocular) scale."""
         return _METERS.get(self.units)
 
+    def structure_box(self, margin: float) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) Tukey fences of the anchored lines and the trajectory: the interquartile box grown by
+        `margin` times its size on each axis (each at least 5% of the largest): what lies outside is
+        stray for CAD drawings. Quartiles, unlike the extremes, ignore a few stray lines far away."""
+        parts = [g.segments_w.reshape(-1, 3) for g in self.line_groups if g.axis_index >= 0]
+        parts = [p for p in parts if len(p)] or [g.segments_w.reshape(-1, 3) for g in self.line_groups]
+        xyz = np.concatenate([*parts, self.trajectory_w, np.zeros((0, 3))])
+        if not len(xyz):
+            xyz = self.points_xyz if len(self.points_xyz) else np.zeros((1, 3))
+        q1, q3 = np.percentile(xyz, [25, 75], axis=0)
+        iqr = np.maximum(q3 - q1, 0.05 * max(float((q3 - q1).max()), 1e-12))
+        return q1 - margin * iqr, q3 + margin * iqr
+
 
 _METERS = {"m": 1.0, "meter": 1.0, "meters": 1.0, "metre": 1.0, "metres": 1.0, "cm": 0.01, "mm": 0.001}
+
+
+def header_text(text: object, limit: int = 200) -> str:
+    """`text` made safe for any file header: one line of printable ASCII (others become '?'), cut short."""
+    s = "".join(c if " " <= c <= "~" else "?" for c in str(text))
+    return s[:limit]
+
+
+def scale_note(metadata: dict) -> str:
+    """How the map's units were found, as one header-safe line ('arbitrary ...' when unscaled)."""
+    return header_text(units_note(metadata).replace("±", "+-"))
+
+
+def stray_mask(xyz: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(N,) True where any of the points (N, ..., 3) lies outside the box."""
+    lo, hi = box
+    if len(xyz) == 0:
+        return np.zeros(0, bool)
+    out = (xyz < lo) | (xyz > hi)
+    return out.reshape(len(xyz), -1).any(axis=1)
+
+
+def cad_split(
+    scene: ExportScene, options: ExportOptions
+) -> tuple[list[SegmentGroup], SegmentGroup, np.ndarray]:
+    """Line groups without their stray lines, the stray lines as one group, and the points kept.
+
+    Stray: seen in fewer than `cad_min_observations` keyframes, or reaching outside the structure box.
+    """
+    box = scene.structure_box(options.cad_stray_margin)
+    kept, stray_seg, stray_ids = [], [], []
+    for g in scene.line_groups:
+        bad = stray_mask(g.segments_w, box)
+        if g.observations is not None:
+            bad |= g.observations < options.cad_min_observations
+        kept.append(
+            SegmentGroup(
+                g.name, g.key, g.rgb, g.segments_w[~bad], g.ids[~bad], g.axis_index, g.direction_w,
+                None if g.observations is None else g.observations[~bad],
+            )
+        )  # fmt: skip
+        stray_seg.append(g.segments_w[bad])
+        stray_ids.append(g.ids[bad])
+    stray = SegmentGroup(
+        "stray",
+        "stray",
+        UNANCHORED_RGB,
+        np.concatenate(stray_seg).reshape(-1, 2, 3),
+        np.concatenate(stray_ids),
+    )
+    return kept, stray, ~stray_mask(scene.points_xyz, box)
 
 
 def prepare(m: Map, options: ExportOptions) -> ExportScene:
@@ -140,10 +226,11 @@ def prepare(m: Map, options: ExportOptions) -> ExportScene:
     vertical = m.axes.vertical_index if m.axes.vertical_index >= 0 else None
     groups: list[SegmentGroup] = []
     keep = np.zeros(len(lines), bool)
+    n_obs = observation_counts(lines.ids, lines.obs_ids[:, 0]) if len(lines) else np.zeros(0, np.int64)
     if "lines" in parts and len(lines):
         keep[:] = True
         if options.min_observations > 0:
-            keep &= observation_counts(lines.ids, lines.obs_ids[:, 0]) >= options.min_observations
+            keep &= n_obs >= options.min_observations
         check_finite(lines.endpoints_w[keep], lines.ids[keep], "lines.endpoints_w")
     axis = lines.axis_of_line(options.min_axis_weight) if len(lines) else np.zeros(0, np.int64)
     check_finite(m.axes.directions, np.arange(n_axes), "axes.directions")
@@ -158,12 +245,13 @@ def prepare(m: Map, options: ExportOptions) -> ExportScene:
         if a < n_axes:
             g = SegmentGroup(
                 names[a], names[a].replace(" ", "_"), tuple(int(c) for c in colors[a]),
-                lines.endpoints_w[sel], lines.ids[sel], a, m.axes.directions[a].copy(),
+                lines.endpoints_w[sel], lines.ids[sel], a, m.axes.directions[a].copy(), n_obs[sel],
             )  # fmt: skip
         else:
             g = SegmentGroup(
-                "unanchored", "unanchored", UNANCHORED_RGB, lines.endpoints_w[sel], lines.ids[sel]
-            )
+                "unanchored", "unanchored", UNANCHORED_RGB, lines.endpoints_w[sel], lines.ids[sel],
+                observations=n_obs[sel],
+            )  # fmt: skip
         groups.append(g)
     if "points" in parts and len(m.points):
         pts, prgb, pids = m.points.xyz, m.points.color, m.points.ids
@@ -198,9 +286,11 @@ def prepare(m: Map, options: ExportOptions) -> ExportScene:
         pids,
         traj,
         traj_ids,
-        str(m.metadata.get("units", "arbitrary")),
+        header_text(m.metadata.get("units", "arbitrary"), 40),
         diagonal,
         info,
+        scale_note(m.metadata),
+        int(vertical) if vertical is not None else -1,
     )
     if scene.is_empty:
         log.warning(

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from papl_mapper.map import Map
 
-from .scene import ExportOptions, check_finite
+from .scene import ExportOptions, check_finite, header_text
 from .text import format_rows
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,9 @@ def export_tum(m: Map, options: ExportOptions | None = None) -> bytes:
         return b""
     q_xyzw = Rotation.from_matrix(T[:, :3, :3]).as_quat()
     q_xyzw *= np.where(q_xyzw[:, 3:] < 0, -1.0, 1.0)  # one sign convention: qw >= 0
-    return format_rows("%.9f %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", t, T[:, :3, 3], q_xyzw)
+    units = header_text(m.metadata.get("units", "arbitrary"), 40)
+    head = f"# timestamp tx ty tz qx qy qz qw (T_wc); units {units}\n"
+    return head.encode() + format_rows("%.9f %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", t, T[:, :3, 3], q_xyzw)
 
 
 def export_kitti(m: Map, options: ExportOptions | None = None) -> bytes:

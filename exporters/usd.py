@@ -42,6 +42,7 @@ def build_stage(scene: ExportScene, options: ExportOptions):
     UsdGeom.SetStageMetersPerUnit(stage, mpu if mpu is not None else 1.0)
     note = {
         "papl:units": scene.units,
+        "papl:scale": scene.scale_note,
         "papl:generator": "papl-mapper",
         "papl:axes": json.dumps(scene.axis_info),
     }

@@ -30,6 +30,7 @@ from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import BackendUnavailableError, InputError
 from papl_mapper.map import Map
 from papl_mapper.palette import UNANCHORED_RGB, axis_colors, axis_names, line_colors
+from papl_mapper.scale.estimate import units_note
 
 log = logging.getLogger(__name__)
 
@@ -471,7 +472,7 @@ def render_views(
     reserve = options.width - x0 + round(0.6 * _legend_font_size(options.height))
     name = options.title or str(m.metadata.get("source", m.metadata.get("name", "map")))
     counts = f"{scene.n_lines:,} lines, {scene.n_points:,} points, {len(m.keyframes):,} keyframes"
-    units = m.metadata.get("units", "arbitrary")
+    units = units_note(m.metadata).replace("±", "+-")
     subtitle = "; ".join([counts, f"units: {units}", *scene.notes])
     paths, total = [], len(options.views) + (options.turntable_frames if options.turntable else 0)
     try:

@@ -27,6 +27,7 @@ from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import BackendUnavailableError, InputError, PaplError
 from papl_mapper.map import Map
 from papl_mapper.palette import UNANCHORED_RGB, axis_colors, axis_names, hex_color
+from papl_mapper.scale.estimate import units_note
 
 from . import plots
 from .preview import PreviewOptions, prepare_scene, render_views
@@ -260,7 +261,7 @@ def _section_summary(run: RunFolder, s: dict[str, Any]) -> str:
         ("points", f"{_num(s['points'])} ({_num(s['point_observations'])} observations)"),
         ("lines", f"{_num(s['lines'])} ({_num(s['line_observations'])} observations)"),
         ("anchored fraction", f"{100 * s['anchored_fraction']:.1f} %" if s["lines"] else _na("no lines")),
-        ("units", _e(s["units"])),
+        ("units", _e(units_note(m.metadata))),
     ]
     if "trajectory_length" in s:
         rows.append(("keyframe path length", f"{s['trajectory_length']:.3f} {_e(s['units'])}"))

@@ -36,7 +36,7 @@ from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 """Bumped when a checkpoint's layout changes, so older checkpoints are ignored instead of misread."""
 
 STAGES = ("frontend", "registration", "ba_points", "ba_full")
@@ -53,10 +53,10 @@ TITLES = {
 # RunConfig later invalidates every checkpoint until it is listed here (safe, never stale).
 # frontend and hfov_deg act through the tracks and the camera, which the frontend key holds.
 _UPSTREAM = {"frontend", "hfov_deg"}
-_LATER_ONLY = {"output", "focal", "stray_line_margin"}
+_LATER_ONLY = {"output", "focal", "scale", "stray_line_margin"}
 _LINES_AND_AXES = {"lines", "axes", "variant", "axis_min_support_fraction", "lines_from_all_frames"}
 NOT_READ: dict[str, set[str]] = {
-    "registration": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES | {"cull", "max_line_error_px"},
+    "registration": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES | {"cull", "completion", "max_line_error_px"},
     "ba_points": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES,
     "ba_full": _UPSTREAM | _LATER_ONLY,
 }
@@ -339,8 +339,10 @@ class AxisInputs:
     line_track: np.ndarray  # (M,) sorted track ids of the triangulated lines
 
 
-def write_map(folder: Path, m: Map, axis_inputs: AxisInputs | None = None) -> None:
+def write_map(folder: Path, m: Map, point_track: np.ndarray, axis_inputs: AxisInputs | None = None) -> None:
+    """The stage's map, the point track ids as track completion left them, and the axis-update inputs."""
     m.save(folder / "map.papl")
+    np.save(folder / "point_track.npy", point_track)
     if axis_inputs is not None:
         s = axis_inputs.state
         np.savez(
@@ -356,19 +358,26 @@ def write_map(folder: Path, m: Map, axis_inputs: AxisInputs | None = None) -> No
         )
 
 
-def read_map(folder: Path, meta: dict[str, Any]) -> tuple[Map, dict[str, Any], AxisInputs | None]:
-    """The map, the statistics so far and the axis-update inputs (None when the stage had none)."""
+def read_map(
+    folder: Path, meta: dict[str, Any], tracks: Tracks
+) -> tuple[Map, dict[str, Any], AxisInputs | None, np.ndarray]:
+    """The map, the statistics so far, the axis-update inputs (None when the stage had none) and the
+    (Kp,) point ids to put into `tracks` (checked against its length)."""
     m = Map.load(folder / "map.papl")
     stats = meta["stats"]
     if not isinstance(stats, dict):
         raise ValueError("stage.json: stats is not a table")
+    point_track = np.load(folder / "point_track.npy", allow_pickle=False)
+    if point_track.shape != tracks.point_track.shape:
+        raise ValueError(f"point_track has {point_track.shape} rows, the tracks {tracks.point_track.shape}")
     path = folder / "axes.npz"
     if not path.exists():
-        return m, stats, None
+        return m, stats, None, point_track
     with np.load(path, allow_pickle=False) as z:
         a = {k: z[k] for k in z.files}
     vertical, next_serial = (int(v) for v in a["state_ints"])
     state = AxisState(a["serial"], a["age"], a["jumps"], vertical, next_serial)
     if len(a["obs_dirs_w"]) != len(a["obs_line"]) or len(state) != len(a["axes_w"]):
         raise ValueError("axes.npz: arrays of different lengths")
-    return m, stats, AxisInputs(a["axes_w"], state, a["obs_dirs_w"], a["obs_line"], a["line_track"])
+    axis_inputs = AxisInputs(a["axes_w"], state, a["obs_dirs_w"], a["obs_line"], a["line_track"])
+    return m, stats, axis_inputs, point_track

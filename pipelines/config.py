@@ -16,6 +16,8 @@ from papl_mapper.frontend import FrontendConfig
 from papl_mapper.mapping.culling import CullConfig
 from papl_mapper.mapping.incremental import IncrementalConfig
 from papl_mapper.mapping.lines import LineInitConfig
+from papl_mapper.mapping.track_completion import CompletionConfig
+from papl_mapper.scale.config import ScaleConfig
 
 
 @dataclass
@@ -53,6 +55,8 @@ class RunConfig:
     cull: CullConfig = field(default_factory=lambda: CullConfig(enabled=False))
     """Redundant keyframe culling after registration. Off: it halves keyframes and BA memory on a 60 s
     720p walk (1298 -> 721, 1.88 -> 0.93 GiB) but moved the 10 s Atlanta walk from 0.29% to 0.90% of path."""
+    completion: CompletionConfig = field(default_factory=CompletionConfig)
+    """Track merging, completion and retriangulation after the points-only BA (then BA again)."""
     lines: LineInitConfig = field(default_factory=LineInitConfig)
     """Line triangulation (the temporary-vanishing-point stage for structural lines)."""
     axes: AxesConfig = field(default_factory=AxesConfig)
@@ -66,6 +70,8 @@ class RunConfig:
     """Extra outputs."""
     focal: FocalCheckConfig = field(default_factory=FocalCheckConfig)
     """Focal-length plausibility check after mapping (warns when the map supports another focal length)."""
+    scale: ScaleConfig = field(default_factory=ScaleConfig)
+    """Metric scale after mapping (markers, camera height); none by default: arbitrary units."""
     seed: int = 0
     """Seed for every random choice (RANSAC), so the same input gives the same map."""
     local_ba_every: int = 10

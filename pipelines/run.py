@@ -1,8 +1,9 @@
 """`papl-map run`: one recording to one anchored line map, as a short recipe over the stages.
 
-frontend (tracks) -> keyframe registration with windowed BA -> points-only global BA -> line
-triangulation (temporary-VP stage) -> upright rotation, axes and soft association -> full global
-BA over points, anchored and orthonormal lines -> axis update and a second BA -> every frame's pose.
+frontend (tracks) -> keyframe registration with windowed BA -> points-only global BA -> track
+completion, merging and retriangulation, and the points BA again -> line triangulation (temporary-VP
+stage) -> upright rotation, axes and soft association -> full global BA over
+points, anchored and orthonormal lines -> axis update and a second BA -> every frame's pose.
 The frontend, registration, points BA and full BA are checkpointed in OUT/.checkpoint (see
 `pipelines/checkpoint.py`), so `--resume` after an interruption continues after the latest of them.
 """
@@ -56,8 +57,10 @@ from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
 from papl_mapper.mapping.pose_refine import FrameRefiner
 from papl_mapper.mapping.rotation_only import fill_rotation_only
 from papl_mapper.mapping.structure import find_structure, line_weights
+from papl_mapper.mapping.track_completion import complete_tracks
 from papl_mapper.mapping.tracking import track_pnp
 from papl_mapper.mapping.windowed import WindowedRefiner
+from papl_mapper.scale import scale_from_config
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -200,6 +203,8 @@ def run(
         )
         with timer.stage("trajectory"):
             traj = frame_trajectory(tracks, m, cfg)
+        with timer.stage("scale"):
+            m, traj = scale_from_config(m, traj, cfg.scale, rec.frames)
         summary = {
             "recording": {
                 "path": str(recording),
@@ -243,7 +248,8 @@ def map_tracks(
     """Everything after the frontend: tracks -> optimised, upright Map and statistics.
 
     With a `store`, registration, points BA and full BA are checkpointed, and a resumed run continues
-    after the latest valid checkpoint (`tracks.point_track` is restored as registration left it).
+    after the latest valid checkpoint (`tracks.point_track` is restored as registration
+    and track completion left it).
     """
     timer = timer or _Timer()
     progress = progress or _silent
@@ -261,16 +267,19 @@ def map_tracks(
     else:
         reg, point_track = loaded
         tracks.point_track[:] = point_track  # in place, like the loop closures that renamed them
-    full = store.load("ba_full", ckpt.read_map)
-    points = store.load("ba_points", ckpt.read_map) if full is None else None
+    read_map = functools.partial(ckpt.read_map, tracks=tracks)
+    full = store.load("ba_full", read_map)
+    points = store.load("ba_points", read_map) if full is None else None
     if full is not None:
-        m, stats, axis_inputs = full
+        m, stats, axis_inputs, point_track = full
+        tracks.point_track[:] = point_track  # as track completion renamed them
     else:
         if points is not None:
-            m, stats, _ = points
+            m, stats, _, point_track = points
+            tracks.point_track[:] = point_track
         else:
             m, stats = _points_ba(tracks, reg, cfg, timer, progress)
-            _save(store, timer, "ba_points", ckpt.write_map, m=m, stats=stats)
+            _save(store, timer, "ba_points", ckpt.write_map, m=m, point_track=tracks.point_track, stats=stats)
         up = vertical_in_world(tracks, _poses(m))
         if up is None:
             log.warning("no vertical vanishing direction: the map keeps the first camera's orientation")
@@ -281,7 +290,16 @@ def map_tracks(
         m, axis_inputs = _lines_and_axes(tracks, m, up is not None, cfg, timer)
         with timer.stage("ba_full"):
             m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines)")
-        _save(store, timer, "ba_full", ckpt.write_map, m=m, axis_inputs=axis_inputs, stats=stats)
+        _save(
+            store,
+            timer,
+            "ba_full",
+            ckpt.write_map,
+            m=m,
+            point_track=tracks.point_track,
+            axis_inputs=axis_inputs,
+            stats=stats,
+        )
     if axis_inputs is not None and cfg.variant.axis_management:
         from papl_mapper.axes import remap_weights, update_axes
 
@@ -351,6 +369,20 @@ def _points_ba(
     m = assemble_map(tracks, T_wc, reg.points_w, LineEstimates.empty())
     with timer.stage("ba_points"):
         m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points)")
+    if cfg.completion.enabled:
+        with timer.stage("completion"):
+            points_w, done = complete_tracks(tracks, m, cfg.completion)
+            m = assemble_map(tracks, _poses(m), points_w, LineEstimates.empty(), metadata=m.metadata)
+        log.info(
+            "tracks: %d merged, %d completed (%d keyframe observations), %d retriangulated",
+            done.merged,
+            done.completed,
+            done.observations_added,
+            done.retriangulated,
+        )
+        stats["completion"] = done.as_dict()
+        with timer.stage("ba_points"):
+            m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points, completed tracks)")
     return m, stats
 
 

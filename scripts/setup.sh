@@ -5,7 +5,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libgomp1 libosmesa6 libxrender1 libxext6 nodejs npm)
+# librecad (dxf2pdf), poppler-utils (pdftoppm) and chromium read the CAD exports back in the tests
+SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libgomp1 libosmesa6 libxrender1 libxext6 nodejs npm librecad poppler-utils chromium)
 # `papl-map view`: Qt's xcb platform plugin, OpenGL on X (Mesa's llvmpipe when there is no GPU),
 # and Xvfb, the X server its tests open the real window on
 SYSTEM_PACKAGES+=(libgl1-mesa-dri libglx-mesa0 libxkbcommon-x11-0 libxcb-cursor0 libxcb-icccm4

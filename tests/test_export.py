@@ -25,6 +25,7 @@ from papl_mapper.errors import ConfigError, InputError, MapFormatError
 from papl_mapper.map import Camera, Keyframes, Map, Points
 from papl_mapper.palette import UNANCHORED_RGB, VERTICAL_RGB
 from tests.conftest import make_map
+from tests.test_export_views import read_view_dxf, read_view_svg
 
 ROUND_TRIP_RTOL = 1e-6  # coordinates read back, relative to the scene's extent
 VALIDATOR = Path(__file__).resolve().parents[1] / ".tools" / "node_modules" / "gltf-validator"
@@ -355,6 +356,11 @@ READERS = {
     ".kitti.txt": read_kitti,
     ".txt": read_kitti,
     ".colmap": read_colmap,
+    # plan and elevation views are 2D drawings: read back (audit, XML) here, checked in test_export_views
+    ".plan.dxf": read_view_dxf,
+    ".elevation.dxf": read_view_dxf,
+    ".plan.svg": read_view_svg,
+    ".elevation.svg": read_view_svg,
 }
 
 
@@ -374,7 +380,8 @@ def _tube_segments(verts: np.ndarray, faces: np.ndarray, sides: int) -> np.ndarr
 
 @pytest.mark.parametrize("suffix", supported_suffixes())
 def test_round_trip(suffix: str, kmap: Map, tmp_path: Path):
-    options = ExportOptions(parts=ALL_PARTS)
+    # every line and point, also those CAD exports leave out as stray (kmap's lines are seen once)
+    options = ExportOptions(parts=ALL_PARTS, cad_min_observations=0, cad_stray_margin=1e6)
     scene = prepare(kmap, options)
     scale = float(np.abs(np.concatenate([g.segments_w.reshape(-1, 3) for g in scene.line_groups])).max())
     paths = export(kmap, tmp_path / f"map{suffix}", options)
@@ -460,7 +467,7 @@ def test_ply_ascii_equals_binary(kmap: Map, tmp_path: Path):
 
 
 def test_dxf_layers_and_counts(kmap: Map, tmp_path: Path):
-    got = read_dxf(export(kmap, tmp_path / "m.dxf", parts=ALL_PARTS)[0])
+    got = read_dxf(export(kmap, tmp_path / "m.dxf", parts=ALL_PARTS, cad_min_observations=0)[0])
     scene = prepare(kmap, ExportOptions(parts=ALL_PARTS))
     counts = {k: len(v) for k, v in got["segments"].items()}
     assert counts == {g.key: len(g.ids) for g in scene.line_groups if len(g.ids)} | {

@@ -7,6 +7,7 @@ import json
 
 from papl_mapper.map import Map
 from papl_mapper.palette import axis_names
+from papl_mapper.scale.estimate import units_note
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -19,6 +20,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     m = Map.load(args.map)
     s = m.summary()
+    s["units_note"] = units_note(m.metadata)
+    s["scale"] = m.metadata.get("scale")
     if args.json:
         print(json.dumps(s, indent=2))
         return 0
@@ -35,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"points         {s['points']}  ({s['point_observations']} observations)")
     print(f"lines          {s['lines']}  ({s['line_observations']} observations)")
     print(f"anchored       {100 * s['anchored_fraction']:.1f} %  ({s['unanchored_lines']} unanchored)")
-    print(f"units          {s['units']}")
+    print(f"units          {units_note(m.metadata)}")
     print(f"axes           {len(m.axes)}")
     for a, (name, d) in enumerate(zip(names, m.axes.directions, strict=True)):
         print(f"  {a}  {name:<13} ({d[0]:+.4f}, {d[1]:+.4f}, {d[2]:+.4f})  {s['lines_per_axis'][a]} lines")

@@ -13,6 +13,7 @@ from papl_mapper.cli.progress import progress_bar
 from papl_mapper.config import load_config
 from papl_mapper.errors import InputError
 from papl_mapper.pipelines.logfile import close_log, file_log
+from papl_mapper.scale import check_config as check_scale_config
 
 if TYPE_CHECKING:
     from papl_mapper.pipelines.run import RunInterrupted
@@ -64,6 +65,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--render", action="store_true", help="also write PNG previews into DIR/previews")
     p.add_argument("--report", action="store_true", help="also write DIR/report.html")
     p.add_argument("--gt", type=Path, help="ground-truth folder for the report and eval.json")
+    p.add_argument(
+        "--marker",
+        action="append",
+        default=[],
+        metavar="aruco:DICT:ID=SIZE_M",
+        help="scale the map to metres from an ArUco marker of known side (repeatable)",
+    )
+    p.add_argument(
+        "--camera-height",
+        type=float,
+        metavar="METRES",
+        help="scale the map from the camera height above the floor",
+    )
     p.set_defaults(func=run)
 
 
@@ -79,7 +93,12 @@ def run(args: argparse.Namespace) -> int:
         overrides.append(f"seed={args.seed}")
     if args.export:
         overrides.append(f"output.export={args.export}")
+    if args.marker:
+        overrides.append(f"scale.markers={','.join(args.marker)}")
+    if args.camera_height is not None:
+        overrides.append(f"scale.camera_height={args.camera_height}")
     cfg = load_config(RunConfig, args.config, overrides)
+    check_scale_config(cfg.scale)  # a bad --marker or --camera-height fails before any work
     # the log of an unfinished run stays beside the checkpoints (a resumed run appends to it) and
     # replaces log.txt when the run's outputs are written, so log.txt always belongs to map.papl
     running_log = args.out / ".checkpoint" / "log.txt"

@@ -76,6 +76,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--photo-hz", type=float, help="photo set rate in Hz (implies photo-set; default with it 1)"
     )
+    p.add_argument("--markers", type=int, default=d.markers, help="ArUco markers on the walls (default 0)")
+    p.add_argument(
+        "--marker-size", type=float, default=d.marker_size, help=f"marker side in m ({d.marker_size:g})"
+    )
+    p.add_argument(
+        "--marker-dictionary", default=d.marker_dictionary, help=f"ArUco dictionary ({d.marker_dictionary})"
+    )
     p.set_defaults(func=run)
 
 
@@ -98,6 +105,9 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
         msaa=args.msaa,
         pan_seconds=args.pan_seconds,
         pan_deg=args.pan_deg,
+        markers=args.markers,
+        marker_size=args.marker_size,
+        marker_dictionary=args.marker_dictionary,
     )
     names = [v.strip() for v in args.variant.split(",") if v.strip()]
     config = with_variants(config, *names)

@@ -86,10 +86,12 @@ class FrontendConfig:
     """The vertical is initialised from the segments of this many first frames."""
     min_texture_std: float = 2.0
     """Frames whose gray-level standard deviation is below this are skipped as textureless."""
-    work_max_size: int = 640
+    work_max_size: int = 1280
     """Point tracking, ORB, LBD and keyframe parallax run on the frame downscaled so its longer side
     is at most this (coordinates are mapped back to full resolution; pixel settings of points and
-    keyframes are in these work pixels); segments are detected at full resolution."""
+    keyframes are in these work pixels); segments are detected at full resolution. Tracking at half
+    resolution halves the corners' precision, which real driving video pays for in drift (see
+    benchmarks/results/real.json); 1280 bounds the cost of a 1080p or larger video."""
     vp_stride: int = 1
     """Estimate vanishing directions on every n-th frame and on keyframes; frames between reuse the
     last estimate's directions and classify their own segments against them (1 = every frame)."""

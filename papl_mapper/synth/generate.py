@@ -47,6 +47,7 @@ import numpy as np
 from papl_mapper import __version__
 from papl_mapper.errors import BackendUnavailableError, InputError
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
+from papl_mapper.synth.markers import place_markers
 from papl_mapper.synth.mp4 import retime_mp4
 from papl_mapper.synth.path import look_around, pan_then_walk, walkthrough
 from papl_mapper.synth.project import project, visible_points, visible_segments
@@ -72,6 +73,7 @@ VARIANTS: dict[str, dict[str, object]] = {
 #: Fields of the variants: left out of scene.json and the GT map's metadata while all are default,
 #: so a plain walkthrough is written exactly as before they existed.
 VARIANT_FIELDS = ("motion", "pan_seconds", "pan_deg", "drop_fraction", "photo_hz", "low_texture")
+MARKER_FIELDS = ("markers", "marker_size", "marker_dictionary")
 
 
 @dataclass
@@ -119,6 +121,12 @@ class SynthConfig:
     """Photo set: keep the walk's frames at this rate, written as frames/ without a video; 0 = video."""
     low_texture: bool = False
     """Blank walls and ceilings and faint floors (few points; structural edges still visible)."""
+    markers: int = 0
+    """ArUco markers (ids 0..markers-1) stuck on walls the walk sees face-on from 1-3 m; 0 = none."""
+    marker_size: float = 0.2
+    """Side of each marker's black square in metres."""
+    marker_dictionary: str = "4X4_50"
+    """ArUco dictionary of the markers (OpenCV's name without DICT_)."""
 
     @property
     def n_frames(self) -> int:
@@ -152,6 +160,9 @@ class SynthConfig:
         if all(d[k] == _DEFAULTS[k] for k in VARIANT_FIELDS):
             for k in VARIANT_FIELDS:
                 del d[k]
+        if self.markers == 0:  # scenes without markers keep the scene.json they always had
+            for k in MARKER_FIELDS:
+                del d[k]
         return d
 
     def validate(self) -> None:
@@ -176,6 +187,12 @@ class SynthConfig:
             raise InputError(f"supersample {self.supersample} must be 1, 2, 3 or 4")
         if not 0 < self.speed <= 5:
             raise InputError(f"walking speed {self.speed} m/s is outside (0, 5]")
+        if not 0 <= self.markers <= 20:
+            raise InputError(f"--markers {self.markers} is outside 0..20")
+        if not (0.02 <= self.marker_size <= 2 and math.isfinite(self.marker_size)):
+            raise InputError(f"--marker-size {self.marker_size} m is outside 0.02..2")
+        if not hasattr(cv2.aruco, f"DICT_{self.marker_dictionary}"):
+            raise InputError(f"--marker-dictionary {self.marker_dictionary!r}: no such ArUco dictionary")
         self._validate_variants()
 
     def _validate_variants(self) -> None:
@@ -226,6 +243,9 @@ class SynthConfig:
             args += ["--drop-fraction", f"{self.drop_fraction:g}"]
         if self.photo_hz > 0 and self.photo_hz != VARIANTS["photo-set"]["photo_hz"]:
             args += ["--photo-hz", f"{self.photo_hz:g}"]
+        if self.markers:
+            args += ["--markers", str(self.markers), "--marker-size", f"{self.marker_size:g}"]
+            args += ["--marker-dictionary", self.marker_dictionary]
         return shlex.join(args)
 
 
@@ -311,6 +331,17 @@ def generate(
     n = config.n_frames
     timestamps, T_wc = camera_path(config, scene)  # every frame of the walk
     keep = config.frame_indices()  # the frames the recording holds
+    markers: list[dict] = []
+    if config.markers:  # quads added after the path: the walk is the same with or without them
+        scene, markers = place_markers(
+            scene,
+            camera,
+            T_wc[keep],
+            config.markers,
+            config.marker_size,
+            config.marker_dictionary,
+            config.seed,
+        )
     renderer = Renderer(scene, camera, config.supersample, msaa=config.msaa)
     post = _PostProcess(config, camera, timestamps, T_wc)
     tmp_video = None if photos else out / ".video.tmp.mp4"
@@ -363,6 +394,8 @@ def generate(
         staged.append(_stage_text(out / "gt" / "segments.txt", segments_txt(scene)))
         axes = {"directions": scene.axes.tolist(), "vertical_index": 0, "names": scene.axis_names}
         staged.append(_stage_text(out / "gt" / "axes.json", json.dumps(axes, indent=2) + "\n"))
+        if markers:
+            staged.append(_stage_text(out / "gt" / "markers.json", json.dumps(markers, indent=2) + "\n"))
         tmp_map = out / "gt" / ".map.tmp.papl"
         every = 1 if photos else KEYFRAME_EVERY  # in a photo set every image is a keyframe
         gt_map(scene, camera, rec_t, rec_T, config, keyframe_every=every).save(tmp_map)
@@ -375,6 +408,8 @@ def generate(
         raise
     for tmp, final in staged:
         os.replace(tmp, final)
+    if not markers:
+        (out / "gt" / "markers.json").unlink(missing_ok=True)  # the markers of an earlier run
     if photos:
         (out / "video.mp4").unlink(missing_ok=True)  # the video of an earlier run
     if frames_tmp is not None or _only_our_frames(out / "frames"):
