@@ -114,10 +114,13 @@ class FrameSource:
             self._cap.release()
 
 
-def open_frames(m: Map, run_dir: Path | None) -> tuple[FrameSource | None, str]:
-    """The map's recording opened for reading, or None and one line saying where it looked."""
+def open_frames(
+    m: Map, run_dir: Path | None, recording: Path | None = None
+) -> tuple[FrameSource | None, str]:
+    """The map's recording (or `recording`, where the user says it is now) opened for reading, or
+    None and one line saying where it looked."""
     size = (int(m.camera.width), int(m.camera.height))
-    places = recording_candidates(m, run_dir)
+    places = [recording] if recording is not None else recording_candidates(m, run_dir)
     if not places:
         return None, "this map does not record its recording (made before the viewer, or by hand)"
     missing, faults = [], []

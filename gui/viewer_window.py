@@ -58,6 +58,8 @@ class ViewerOptions:
     """Detect segments in the 2D panel's frame (the run's own detector settings)."""
     multi_samples: int = 8
     """Antialiasing samples per pixel; 1 turns it off (the CLI does on a software renderer)."""
+    recording: str = ""
+    """The recording, when it is no longer where the map says (empty: the map's source_path)."""
     renderer: str = ""
     """The OpenGL renderer's name as the display probe found it (shown in the status line)."""
 
@@ -449,7 +451,8 @@ def _window_class() -> type:
             self.scene.compute_rms(self.map)
             self.timings["rms_s"] = time.perf_counter() - t0
             self.rms_box.setEnabled(bool(np.isfinite(self.scene.rms_px).any()))
-            self.frames, self.why_no_frames = open_frames(self.map, self.run_dir)
+            given = Path(self.options.recording) if self.options.recording else None
+            self.frames, self.why_no_frames = open_frames(self.map, self.run_dir, given)
             if self.frames is not None and self.options.detect_segments:
                 self.detector = detector_for(self.run_dir)
             if len(self.map.keyframes):

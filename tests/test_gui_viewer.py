@@ -163,6 +163,9 @@ def test_moved_or_unrecorded_recording_gives_a_panel_naming_where_it_looked(gt_m
     assert not panel.has_frame and panel.caption == why and panel.image.shape == (480, 640, 3)
     frames, why = open_frames(gt_map, None)  # an old map: no recording recorded at all
     assert frames is None and "does not record its recording" in why
+    frames, why = open_frames(gt_map, None, DEMO / "video.mp4")  # the user says where it is
+    assert frames is not None and why == ""
+    frames.close()
     (tmp_path / "video.mp4").write_bytes(b"not a video")
     frames, why = open_frames(with_recording(gt_map, tmp_path / "video.mp4"), None)
     assert frames is None and "not a readable video" in why
@@ -211,6 +214,14 @@ def test_view_refuses_a_bad_map_in_one_line_naming_the_file(tmp_path, monkeypatc
     code = main(["view", str(target)])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and str(target) in err and fault in err
+
+
+def test_view_refuses_a_missing_recording_in_one_line(tmp_path, monkeypatch, capsys) -> None:
+    monkeypatch.setattr("papl_mapper.cli.view.check_display", lambda: None)
+    gone = tmp_path / "walk.mp4"
+    code = main(["view", str(DEMO / "gt" / "map.papl"), "--recording", str(gone)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and str(gone) in err
 
 
 def test_view_refuses_a_bad_script_before_opening(tmp_path, monkeypatch, capsys) -> None:

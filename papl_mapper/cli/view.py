@@ -40,6 +40,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keyframe", type=int, default=0, help="keyframe row to open the walkthrough at")
     p.add_argument("--max-lines", type=int, help="draw at most this many lines (default 1,000,000)")
     p.add_argument("--size", help="window WIDTHxHEIGHT in pixels, default 1600x1000")
+    p.add_argument(
+        "--recording", type=Path, help="the recording, if it moved (default: the map's source_path)"
+    )
     p.add_argument("--no-detect", action="store_true", help="do not detect segments in the 2D panel")
     p.add_argument("--script", type=Path, help="JSON list of steps to run in the window (see viewer_control)")
     p.set_defaults(func=run)
@@ -130,6 +133,8 @@ def run(args: argparse.Namespace) -> int:
 
         load_script(args.script)  # a bad script is refused before any window opens
     path = _map_path(src)
+    if args.recording is not None and not args.recording.exists():
+        raise InputError(f"--recording {args.recording}: no such file or folder")
     # three things at once: the probe (a child), the map load (a thread: reading and numpy release
     # the GIL) and the window's imports (here); importing is safe without a display, opening is not
     probe = start_probe()
@@ -157,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
         detect_segments=not args.no_detect,
         multi_samples=1 if software else 8,
         renderer=renderer,
+        recording=str(args.recording or ""),
     )
     if args.max_lines is not None:
         options.max_lines = args.max_lines
