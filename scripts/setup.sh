@@ -12,6 +12,8 @@ SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libgomp1 libosmesa6 libxrender1 lib
 SYSTEM_PACKAGES+=(libgl1-mesa-dri libglx-mesa0 libxkbcommon-x11-0 libxcb-cursor0 libxcb-icccm4
     libxcb-keysyms1 libxcb-image0 libxcb-render-util0 libxcb-shape0 libxcb-randr0 libxcb-xkb1
     libfontconfig1 libdbus-1-3 xvfb)
+# benchmarks/viewer.py also measures Open3D's GUI, which renders through Vulkan (Mesa's lavapipe here)
+SYSTEM_PACKAGES+=(libvulkan1 mesa-vulkan-drivers)
 missing=()
 for pkg in "${SYSTEM_PACKAGES[@]}"; do
     if ! dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed"; then
