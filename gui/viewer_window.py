@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from papl_mapper.palette import hex_color
 from .preview import _VIEW_GEOMETRY, THEMES, TRAJECTORY_RGB, PreviewOptions, Scene, _compose, _save_png
 from .viewer_actors import frusta_segments, points_polydata, segments_polydata, trajectory_polydata
 from .viewer_pick import LineFacts, line_facts, pick_point, pick_segment, to_pixels
-from .viewer_scene import Filters, Selection, ViewerScene, bounds
+from .viewer_scene import Filters, Selection, ViewerScene, bounds, line_rms_px
 from .viewer_walk import Panel, detector_for, keyframe_panel, open_frames
 
 log = logging.getLogger(__name__)
@@ -194,7 +195,7 @@ def _window_class() -> type:
             self.detector = None
             self.timings: dict[str, float] = {"scene_s": time.perf_counter() - t0}
             self._ready = False  # no frame is drawn while the window is being built
-            self.ready = False  # True once the first frame, the RMS and the 2D panel are up
+            self.ready = False  # True once the first frame, the 2D panel and the RMS are up
             lo, hi = bounds(m)
             self.lo, self.hi = lo, hi
             self.diag = float(np.linalg.norm(hi - lo)) or 1.0
@@ -447,10 +448,12 @@ def _window_class() -> type:
             """Once the first frame is up: the reprojection RMS (for its filter) and the 2D panel."""
             if "first_frame_s" not in self.timings:  # no paint yet: draw the first frame now
                 self.plotter.ren_win.Render()
-            t0 = time.perf_counter()
-            self.scene.compute_rms(self.map)
-            self.timings["rms_s"] = time.perf_counter() - t0
-            self.rms_box.setEnabled(bool(np.isfinite(self.scene.rms_px).any()))
+            # the RMS of a million lines takes seconds: a worker thread (numpy releases the GIL)
+            # computes it while the window answers; its filter is enabled when it is done
+            self._rms_started = time.perf_counter()
+            self._rms_pool = ThreadPoolExecutor(1, thread_name_prefix="line-rms")
+            self._rms_job = self._rms_pool.submit(line_rms_px, self.map)
+            self.QtCore.QTimer.singleShot(50, self._rms_done)
             given = Path(self.options.recording) if self.options.recording else None
             self.frames, self.why_no_frames = open_frames(self.map, self.run_dir, given)
             if self.frames is not None and self.options.detect_segments:
@@ -459,6 +462,17 @@ def _window_class() -> type:
                 self.set_keyframe(self.slider.value(), force=True)
             else:
                 self.caption.setText("this map has no keyframes: nothing to play")
+            self._update_status()
+
+        def _rms_done(self) -> None:
+            """Poll the RMS worker; when it is done, enable its filter and mark the window ready."""
+            if not self._rms_job.done():
+                self.QtCore.QTimer.singleShot(50, self._rms_done)
+                return
+            self.scene.rms_px = self._rms_job.result()
+            self._rms_pool.shutdown()
+            self.timings["rms_s"] = time.perf_counter() - self._rms_started
+            self.rms_box.setEnabled(bool(np.isfinite(self.scene.rms_px).any()))
             self._update_status()
             self.ready = True
 
