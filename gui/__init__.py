@@ -1,8 +1,11 @@
-"""Off-screen previews and the HTML map report; import as papl_mapper.gui.
+"""Off-screen previews, the HTML map report and the desktop viewer; import as papl_mapper.gui.
 
 Public surface:
 - `render_previews(map, out_dir, options=None) -> list[Path]`: isometric/top/front/side PNGs coloured by axis.
 - `write_report(run_dir_or_map, out_path, gt_dir=None, options=None) -> Path`: one self-contained HTML file.
+- The desktop viewer (`papl-map view`): `viewer_window.open_viewer`, with its data path in
+  `viewer_scene`, the 2D panel in `viewer_walk`, picking in `viewer_pick` and the scripted-control
+  hook in `viewer_control`; Qt is imported only when a window opens.
 pyvista/VTK and matplotlib are imported only when rendering, so importing this package is cheap.
 """
 

@@ -7,6 +7,13 @@ cd "$(dirname "$0")/.."
 
 # librecad (dxf2pdf), poppler-utils (pdftoppm) and chromium read the CAD exports back in the tests
 SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libgomp1 libosmesa6 libxrender1 libxext6 nodejs npm librecad poppler-utils chromium)
+# `papl-map view`: Qt's xcb platform plugin, OpenGL on X (Mesa's llvmpipe when there is no GPU),
+# and Xvfb, the X server its tests open the real window on
+SYSTEM_PACKAGES+=(libgl1-mesa-dri libglx-mesa0 libxkbcommon-x11-0 libxcb-cursor0 libxcb-icccm4
+    libxcb-keysyms1 libxcb-image0 libxcb-render-util0 libxcb-shape0 libxcb-randr0 libxcb-xkb1
+    libfontconfig1 libdbus-1-3 xvfb)
+# benchmarks/viewer.py also measures Open3D's GUI, which renders through Vulkan (Mesa's lavapipe here)
+SYSTEM_PACKAGES+=(libvulkan1 mesa-vulkan-drivers)
 missing=()
 for pkg in "${SYSTEM_PACKAGES[@]}"; do
     if ! dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed"; then
@@ -36,8 +43,9 @@ want=$(sha256sum pyproject.toml | cut -d' ' -f1)
 if [[ ! -f $stamp || "$(cat "$stamp")" != "$want" ]]; then
     echo "setup: installing papl-mapper and its dependencies into .venv"
     .venv/bin/python -m pip install -q --upgrade pip
-    # the ray extra is optional for users (`papl-map batch --ray`); the tests run it on a local cluster
-    .venv/bin/python -m pip install -q -e ".[dev,ray]"
+    # the ray extra is optional for users (`papl-map batch --ray`); the tests run it on a local cluster;
+    # the viewer extra (Qt for `papl-map view`) likewise: the tests open its window under Xvfb
+    .venv/bin/python -m pip install -q -e ".[dev,ray,viewer]"
     echo "$want" > "$stamp"
 fi
 

@@ -15,7 +15,7 @@ from papl_mapper import __version__
 from papl_mapper.errors import PaplError
 
 #: Sub-command modules, in the order `--help` lists them.
-COMMANDS = ("run", "batch", "scale", "info", "synth", "eval", "export", "render", "report")
+COMMANDS = ("run", "batch", "scale", "info", "synth", "eval", "export", "render", "report", "view")
 
 log = logging.getLogger("papl_mapper")
 
