@@ -76,8 +76,8 @@ PHOTO_SET_INTERVAL_S = 0.5  # median frame interval above this: a photo set (exh
 SEED = 0
 METHODS = ("papl", "colmap", "glomap")
 LABELS = {"papl": "papl-map", "colmap": "COLMAP", "glomap": "GLOMAP"}
-ABLATION = ("points-only", "orthonormal-lines", "no-axis-management")
-"""The presets `--ablation` is meant for: lines off, lines unanchored, axes never updated."""
+ABLATION = ("points-only", "orthonormal-lines", "no-axis-management", "paper-anchors")
+"""Presets for `--ablation`: lines off, lines unanchored, axes never updated, the paper's n + 2."""
 
 
 @dataclass
