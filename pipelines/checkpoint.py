@@ -284,14 +284,18 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
     )
 
 
+def _check_point_track(point_track: np.ndarray, tracks: Tracks) -> np.ndarray:
+    """A checkpoint's (Kp,) point track ids, refused when they do not fit these tracks."""
+    if point_track.shape != tracks.point_track.shape:
+        raise ValueError(f"point_track has {point_track.shape} rows, the tracks {tracks.point_track.shape}")
+    return point_track
+
+
 def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tuple[Registration, np.ndarray]:
     """The Registration and the (Kp,) point ids to put into `tracks` (checked against its length)."""
     with np.load(folder / "registration.npz", allow_pickle=False) as z:
         a = {k: z[k] for k in z.files}
-    if a["point_track"].shape != tracks.point_track.shape:
-        raise ValueError(
-            f"point_track has {a['point_track'].shape} rows, the tracks {tracks.point_track.shape}"
-        )
+    _check_point_track(a["point_track"], tracks)
 
     def as_dict(ids: np.ndarray, values: np.ndarray) -> dict[int, np.ndarray]:
         if len(ids) != len(values):
@@ -367,9 +371,7 @@ def read_map(
     stats = meta["stats"]
     if not isinstance(stats, dict):
         raise ValueError("stage.json: stats is not a table")
-    point_track = np.load(folder / "point_track.npy", allow_pickle=False)
-    if point_track.shape != tracks.point_track.shape:
-        raise ValueError(f"point_track has {point_track.shape} rows, the tracks {tracks.point_track.shape}")
+    point_track = _check_point_track(np.load(folder / "point_track.npy", allow_pickle=False), tracks)
     path = folder / "axes.npz"
     if not path.exists():
         return m, stats, None, point_track

@@ -312,3 +312,15 @@ def test_similarity_T_cw_batched_equals_one_at_a_time():
     batched = similarity_T_cw(T, R, t, s)
     for k in range(6):
         np.testing.assert_allclose(batched[k], similarity_T_cw(T[k], R[k], t[k], float(s[k])), atol=1e-12)
+
+
+def test_max_reprojection_px_is_the_worst_view_and_inf_behind_a_camera():
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    X = np.array([[0.0, 0, 5], [1.0, 0, 5]])
+    behind = np.eye(4)
+    behind[2, 3] = -10.0  # moves both points to z = -5
+    T_cw = np.stack([np.eye(4), np.eye(4), np.eye(4), behind])
+    index = np.array([0, 0, 1, 1])
+    uv = np.array([[320.0, 240], [323, 244], [420, 240], [420, 240]])
+    worst = g.max_reprojection_px(index, T_cw, K, uv, X)
+    assert worst[0] == 5.0 and worst[1] == np.inf

@@ -107,9 +107,8 @@ def test_unmapped_tracks_are_triangulated_where_they_are(noise_px):
     mapped, unmapped = ids[::3], np.setdiff1d(ids, ids[::3])
     # one observation of a few unmapped tracks is an outlier: those must not enter the map
     bad = unmapped[:20]
-    first_rows = np.searchsorted(tracks.point_track[np.argsort(tracks.point_track, kind="stable")], bad)
     order = np.argsort(tracks.point_track, kind="stable")
-    tracks.point_uv[order[first_rows]] += 25.0
+    tracks.point_uv[order[np.searchsorted(tracks.point_track[order], bad)]] += 25.0
     points_w = {int(t): pts[t] for t in mapped}
     out, stats = complete_tracks(tracks, _map(tracks, T_wc, points_w), CompletionConfig())
     new = np.array(sorted(set(out) - set(points_w)), np.int64)

@@ -46,6 +46,7 @@ from papl_mapper.geometry.se3 import (
     transform,
 )
 from papl_mapper.geometry.triangulation import (
+    max_reprojection_px,
     observation_planes,
     triangulate_line_two_view,
     triangulate_lines,
@@ -92,6 +93,7 @@ __all__ = [
     "sphere_retract",
     "tangent_basis",
     "transform",
+    "max_reprojection_px",
     "triangulate_line_two_view",
     "triangulate_lines",
     "triangulate_points",

@@ -48,6 +48,21 @@ def triangulate_points(
     return X, ok
 
 
+def max_reprojection_px(
+    point_index: np.ndarray, T_cw: np.ndarray, K: np.ndarray, uv: np.ndarray, X: np.ndarray
+) -> np.ndarray:
+    """(P,) each triangulated point's largest reprojection error (pixels) over its observations, inf
+    where it lies behind one of them. point_index (K,), T_cw (K, 4, 4) world to camera, uv (K, 2),
+    X (P, 3) as `triangulate_points` returns them."""
+    Xc = np.einsum("kij,kj->ki", T_cw[:, :3, :3], X[point_index]) + T_cw[:, :3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = Xc @ K.T
+        err = np.where(Xc[:, 2] > 0, np.linalg.norm(proj[:, :2] / proj[:, 2:3] - uv, axis=1), np.inf)
+    worst = np.zeros(len(X))
+    np.maximum.at(worst, point_index, err)
+    return worst
+
+
 def observation_planes(T_wc: np.ndarray, K: np.ndarray, obs_xy: np.ndarray) -> np.ndarray:
     """(K, 4) unit-normal world planes (a, d), a . X + d = 0, through each camera centre and image segment."""
     p1 = np.concatenate([obs_xy[:, :2], np.ones((len(obs_xy), 1))], 1)

@@ -17,7 +17,7 @@ from papl_mapper.errors import PaplError, UnmappableError
 from papl_mapper.eval.trajectory import Sim3, umeyama
 from papl_mapper.frontend.descriptors import match_descriptors
 from papl_mapper.geometry.se3 import invert, rotation_angle_deg, similarity_T_cw
-from papl_mapper.geometry.triangulation import triangulate_points
+from papl_mapper.geometry.triangulation import max_reprojection_px, triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions
 from papl_mapper.mapping.registration_lines import RegistrationLines, RegistrationLinesConfig
@@ -134,14 +134,10 @@ def _triangulate_new(
     obs_track, obs_frame, uv = tracks.point_track[sel], tracks.point_frame[sel], tracks.point_uv[sel]
     uniq, point_index = np.unique(obs_track, return_inverse=True)
     T_cw = np.stack([reg.T_cw[int(f)] for f in obs_frame])
-    X, ok = triangulate_points(point_index, invert(T_cw), K, uv, len(uniq), min_parallax)
-    Xc = np.einsum("kij,kj->ki", T_cw[:, :3, :3], X[point_index]) + T_cw[:, :3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        proj = Xc @ K.T
-        err = np.where(Xc[:, 2] > 0, np.linalg.norm(proj[:, :2] / proj[:, 2:3] - uv, axis=1), np.inf)
-    max_err = np.zeros(len(uniq))
-    np.maximum.at(max_err, point_index, err)
-    angle = _ray_angle_deg(point_index, invert(T_cw)[:, :3, 3], X, len(uniq))
+    T_wc = invert(T_cw)
+    X, ok = triangulate_points(point_index, T_wc, K, uv, len(uniq), min_parallax)
+    max_err = max_reprojection_px(point_index, T_cw, K, uv, X)
+    angle = _ray_angle_deg(point_index, T_wc[:, :3, 3], X, len(uniq))
     ok &= (max_err < cfg.max_reprojection_px) & (angle >= min_parallax)
     added = 0
     for i in np.flatnonzero(ok):

@@ -19,8 +19,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from papl_mapper.frontend.descriptors import hamming_pairs
-from papl_mapper.geometry.se3 import project_points
-from papl_mapper.geometry.triangulation import triangulate_points
+from papl_mapper.geometry.se3 import invert, project_points
+from papl_mapper.geometry.triangulation import max_reprojection_px, triangulate_points
 from papl_mapper.map import Map
 from papl_mapper.tracks import PointRows, Tracks
 
@@ -190,13 +190,9 @@ def _retriangulate(
         return 0
     uniq, index = np.unique(tracks.point_track[sel], return_inverse=True)
     T = np.stack([T_wc[int(f)] for f in tracks.point_frame[sel]])
-    uv_obs = tracks.point_uv[sel]
-    X, ok = triangulate_points(index, T, tracks.camera.K, uv_obs, len(uniq), cfg.min_angle_deg)
-    uv, z = project_points(tracks.camera.K, T, X[index])
-    err = np.where(z > 0, np.linalg.norm(uv - uv_obs, axis=1), np.inf)
-    worst = np.zeros(len(uniq))
-    np.maximum.at(worst, index, err)
-    ok &= worst <= cfg.max_reprojection_px
+    K, uv = tracks.camera.K, tracks.point_uv[sel]
+    X, ok = triangulate_points(index, T, K, uv, len(uniq), cfg.min_angle_deg)
+    ok &= max_reprojection_px(index, invert(T), K, uv, X) <= cfg.max_reprojection_px
     for i in np.flatnonzero(ok).tolist():
         points_w[int(uniq[i])] = X[i]
     return int(ok.sum())
