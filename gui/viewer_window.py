@@ -355,16 +355,13 @@ def _window_class() -> type:
             if len(xyz):
                 bg = np.asarray(THEMES["white"]["background"], np.float64)
                 faded = (0.55 * rgb + 0.45 * bg).astype(np.uint8)
-                self.points_actor = pl.add_mesh(
+                self.points_actor = self._overlay(
                     points_polydata(xyz, faded),
                     scalars="rgb",
                     rgb=True,
                     point_size=self.point_size,
                     style="points",
-                    lighting=False,
                     name="points",
-                    reset_camera=False,
-                    render=False,
                 )
             traj = trajectory_polydata(m)
             tcol = [c / 255 for c in TRAJECTORY_RGB]
@@ -380,6 +377,12 @@ def _window_class() -> type:
                 self.timings["first_frame_s"] = time.perf_counter() - self.started
                 self.timings["first_frame_unix"] = time.time()
 
+        def _overlay(self, mesh: Any, name: str, **style: Any) -> Any:
+            """Add (or replace) the named unlit actor without moving the camera or rendering."""
+            return self.plotter.add_mesh(
+                mesh, name=name, lighting=False, reset_camera=False, render=False, **style
+            )
+
         def _render(self) -> None:
             if self._ready:
                 self.plotter.render()
@@ -393,15 +396,12 @@ def _window_class() -> type:
             self.plotter.remove_actor("lines", render=False)
             if len(sel.drawn):
                 poly = segments_polydata(self.scene.endpoints_w[sel.drawn], self.scene.line_rgb[sel.drawn])
-                self.plotter.add_mesh(
+                self._overlay(
                     poly,
                     scalars="rgb",
                     rgb=True,
                     line_width=self.options.line_width,
-                    lighting=False,
                     name="lines",
-                    reset_camera=False,
-                    render=False,
                 )
             self.timings["select_s"] = t1 - t0
             self.timings["lines_polydata_s"] = time.perf_counter() - t1
@@ -483,14 +483,11 @@ def _window_class() -> type:
             m = self.map
             if self.frusta_actor is None and len(m.keyframes):
                 rows = np.arange(0, len(m.keyframes), max(1, math.ceil(len(m.keyframes) / 200)))
-                self.frusta_actor = self.plotter.add_mesh(
+                self.frusta_actor = self._overlay(
                     segments_polydata(frusta_segments(m, self.frustum_depth, rows)),
                     color=[c / 255 for c in TRAJECTORY_RGB],
                     line_width=1,
-                    lighting=False,
                     name="frusta",
-                    reset_camera=False,
-                    render=False,
                 )
             return self.frusta_actor
 
@@ -632,14 +629,11 @@ def _window_class() -> type:
                 self.slider.setValue(row)
                 self.slider.blockSignals(False)
             seg = frusta_segments(self.map, 1.5 * self.frustum_depth, [row])
-            self.plotter.add_mesh(
+            self._overlay(
                 segments_polydata(seg),
                 color=[c / 255 for c in CURRENT_RGB],
                 line_width=3,
-                lighting=False,
                 name="current",
-                reset_camera=False,
-                render=False,
             )
             current = self.plotter.actors.get("current")
             if current is not None:  # following, the view is the keyframe's: its frustum would frame it
@@ -749,26 +743,20 @@ def _window_class() -> type:
             self.picked = facts
             self.pick_label.setText(facts.text(self.units))
             col = [c / 255 for c in HIGHLIGHT_RGB]
-            self.plotter.add_mesh(
+            self._overlay(
                 segments_polydata(self.scene.endpoints_w[[row]]),
                 color=col,
                 line_width=3 * self.options.line_width,
-                lighting=False,
                 name="picked",
-                reset_camera=False,
-                render=False,
             )
             rows = np.flatnonzero(np.isin(self.map.keyframes.ids, facts.keyframe_ids))
             self.plotter.remove_actor("seeing", render=False)
             if len(rows):
-                self.plotter.add_mesh(
+                self._overlay(
                     segments_polydata(frusta_segments(self.map, 1.2 * self.frustum_depth, rows)),
                     color=col,
                     line_width=2,
-                    lighting=False,
                     name="seeing",
-                    reset_camera=False,
-                    render=False,
                 )
             self._render()
 
@@ -787,14 +775,11 @@ def _window_class() -> type:
                 render=False,
             )
             if len(pts) == 2:
-                self.plotter.add_mesh(
+                self._overlay(
                     segments_polydata(pts[None]),
                     color=col,
                     line_width=3,
-                    lighting=False,
                     name="measure_line",
-                    reset_camera=False,
-                    render=False,
                 )
                 dist = float(np.linalg.norm(pts[1] - pts[0]))
                 self.measured = dist
