@@ -1,9 +1,12 @@
-"""Which keypoints bridge a wide baseline: verified matches between neighbouring images and time.
+"""Which keypoints bridge a wide baseline: verified matches of neighbouring images, their precision, time.
 
 For each real sequence in ../shared/data/real (every --step-th image), each detector's keypoints are
 matched between neighbours (Lowe ratio 0.8) and verified by an essential matrix (USAC, 2 px); the
-table gives the verified matches (minimum and median over the pairs) and the milliseconds per image
-for detection and per pair for matching plus verification. Writes benchmarks/results/features.json.
+table gives the verified matches (minimum and median over the pairs), the median Sampson distance of
+the inliers to their essential matrix (px: how precisely the keypoints are placed), and the
+milliseconds per image for detection and per pair for matching plus verification. `product` is the
+frontend's own detector and matcher (`frontend.features`: SIFT with RootSIFT and ORB descriptors).
+Writes benchmarks/results/features.json.
 
     .venv/bin/python benchmarks/features.py
 """
@@ -20,6 +23,7 @@ import numpy as np
 from machine import machine_info
 
 from papl_mapper.frontend.camera import read_camera_file
+from papl_mapper.frontend.features import FeatureConfig, SiftDetector, match_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "real"
@@ -43,7 +47,13 @@ def _detector(det: cv2.Feature2D):
     return run
 
 
+def _product(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    uv, root_sift, _ = SiftDetector(FeatureConfig()).detect(gray)
+    return uv.astype(np.float32), root_sift
+
+
 DETECTORS = {
+    "product": (_product, None),
     "orb_on_klt_corners": (_klt_corners_orb, cv2.NORM_HAMMING),
     "orb_1500_fast20": (_detector(cv2.ORB_create(1500)), cv2.NORM_HAMMING),
     "orb_1500_fast5": (_detector(cv2.ORB_create(1500, fastThreshold=5)), cv2.NORM_HAMMING),
@@ -51,16 +61,34 @@ DETECTORS = {
 }
 
 
-def _verified(a, b, norm, K) -> int:
-    knn = cv2.BFMatcher(norm).knnMatch(a[1], b[1], k=2)
-    m = [p[0] for p in knn if len(p) == 2 and p[0].distance < 0.8 * p[1].distance]
-    if len(m) < 8:
-        return 0
-    pa = a[0][[x.queryIdx for x in m]]
-    pb = b[0][[x.trainIdx for x in m]]
+def _sampson_px(E: np.ndarray, pa: np.ndarray, pb: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Sampson distance (pixels) of matched pixels to the epipolar geometry of E."""
+    F = np.linalg.inv(K).T @ E @ np.linalg.inv(K)
+    xa = np.column_stack([pa, np.ones(len(pa))])
+    xb = np.column_stack([pb, np.ones(len(pb))])
+    Fa, Ftb = xa @ F.T, xb @ F
+    num = np.sum(xb * Fa, axis=1) ** 2
+    return np.sqrt(num / (Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2))
+
+
+def _verified(a, b, norm, K) -> tuple[int, float]:
+    """Verified matches of two images and the median Sampson distance of the inliers (px)."""
+    if norm is None:
+        m, _ = match_pair(a[1], b[1], 0.8)
+        pa, pb = a[0][m[:, 0]], b[0][m[:, 1]]
+    else:
+        knn = cv2.BFMatcher(norm).knnMatch(a[1], b[1], k=2)
+        m = [p[0] for p in knn if len(p) == 2 and p[0].distance < 0.8 * p[1].distance]
+        pa = a[0][[x.queryIdx for x in m]]
+        pb = b[0][[x.trainIdx for x in m]]
+    if len(pa) < 8:
+        return 0, float("nan")
     cv2.setRNGSeed(0)
     E, mask = cv2.findEssentialMat(pa, pb, K, cv2.USAC_FAST, 0.999, 2.0)
-    return 0 if mask is None else int(mask.sum())
+    if mask is None or E is None:
+        return 0, float("nan")
+    ok = mask.ravel().astype(bool)
+    return int(ok.sum()), float(np.median(_sampson_px(E[:3], pa[ok], pb[ok], K)))
 
 
 def main() -> int:
@@ -70,7 +98,10 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     rows = []
-    print(f"{'sequence':24} {'detector':20} {'min':>5} {'median':>6} {'detect ms':>9} {'match ms':>8}")
+    print(
+        f"{'sequence':24} {'detector':20} {'min':>5} {'median':>6} {'sampson px':>10} "
+        f"{'detect ms':>9} {'match ms':>8}"
+    )
     for seq in sorted(p for p in args.data.iterdir() if (p / "images").is_dir()):
         cam_file = next((seq / n for n in ("camera.json", "calib.txt") if (seq / n).exists()), None)
         K = read_camera_file(cam_file).K
@@ -80,19 +111,22 @@ def main() -> int:
             t0 = time.perf_counter()
             feats = [detect(g) for g in grays]
             t1 = time.perf_counter()
-            verified = [_verified(feats[i], feats[i + 1], norm, K) for i in range(len(feats) - 1)]
+            pairs = [_verified(feats[i], feats[i + 1], norm, K) for i in range(len(feats) - 1)]
             t2 = time.perf_counter()
+            verified = [v for v, _ in pairs]
             row = {
                 "sequence": seq.name,
                 "detector": name,
                 "verified_min": min(verified),
                 "verified_median": float(np.median(verified)),
+                "inlier_sampson_px_median": float(np.nanmedian([e for _, e in pairs])),
                 "detect_ms_per_image": 1000 * (t1 - t0) / len(feats),
                 "match_verify_ms_per_pair": 1000 * (t2 - t1) / len(verified),
             }
             rows.append(row)
             print(
                 f"{seq.name:24} {name:20} {row['verified_min']:5d} {row['verified_median']:6.0f} "
+                f"{row['inlier_sampson_px_median']:10.3f} "
                 f"{row['detect_ms_per_image']:9.1f} {row['match_verify_ms_per_pair']:8.1f}"
             )
     args.out.write_text(

@@ -1,10 +1,22 @@
-"""Binary descriptors (ORB, LBD; 32 bytes): Hamming distances and mutual-nearest matching."""
+"""Binary descriptors (ORB, LBD; 32 bytes): describing corners, Hamming distances, mutual-nearest matching."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+
+
+def describe_corners(orb: cv2.ORB, gray: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ORB descriptors of given corners at their own position (one size, no orientation, level 0), the
+    keyframe descriptor of every point track: rows (D,) of `uv` kept (ORB leaves out corners too near
+    the border) and descriptors (D, 32) uint8."""
+    kps = [cv2.KeyPoint(float(x), float(y), 15.0, -1, 0, 0, i) for i, (x, y) in enumerate(uv)]
+    kps, desc = orb.compute(gray, kps)
+    if desc is None or not kps:
+        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
+    return np.array([k.class_id for k in kps], np.int64), desc
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -1,17 +1,21 @@
-"""Wide-baseline point features: ORB keypoints on keyframes, matched across keyframes that KLT does not link.
+"""Wide-baseline point features: SIFT keypoints on keyframes, matched across keyframes that KLT does not link.
 
 KLT follows corners from frame to frame and breaks at a jump: a dropped or corrupt frame, a cut, a
 large `--step`, a folder of photos taken a step apart. The frames on both sides of a break are
-keyframes, and the keyframes near a weak link (a break, or few KLT tracks shared) get oriented
-multi-scale ORB keypoints of their own detector, so they repeat under the rotation and scale change
-of a wide baseline. Keyframe pairs that a weak link separates are matched: ratio test, closest match
-per keypoint, essential-matrix USAC. Verified matches are chained into tracks by union-find, never
-two observations of one track in one frame, and these tracks join the KLT point observations with
-ids of their own, so registration (PnP, triangulation, revisits) carries on across the break.
+keyframes, and the keyframes near a weak link (a break, or few KLT tracks shared) get SIFT keypoints
+of their own, so they repeat under the rotation and scale change of a wide baseline. Keyframe pairs
+that a weak link separates are matched (every pair in a photo set: covisible keyframes far apart in
+the recording make long tracks): RootSIFT ratio test, closest match per keypoint, essential-matrix
+USAC. Verified matches are chained into tracks by union-find, never two observations of one track in
+one frame, and these tracks join the KLT point observations with ids of their own, so registration
+(PnP, triangulation, revisits) carries on across the break.
 
-ORB, not SIFT: between neighbouring images of the real sequences ORB-1500 verifies more matches than
-SIFT-1500 (median; on the TUM photo set SIFT's weakest pair is better), at a seventh of the
-detection time (benchmarks/features.py).
+SIFT, not ORB: its keypoints are localised to a fraction of a pixel in scale space where ORB's sit on
+the integer grid of a pyramid level (inliers fit their epipolar geometry several times closer), and it
+verifies more matches between neighbouring real images, at about ten times ORB's detection time
+(benchmarks/results/features.json); the real photo set maps more accurately with it. Each keypoint
+also gets the 32-byte ORB descriptor that KLT corners get on keyframes (`describe_corners`), so track
+completion and revisits compare one kind of descriptor across both kinds of track.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from papl_mapper.frontend.descriptors import describe_corners
+
 log = logging.getLogger(__name__)
 
 
@@ -30,13 +36,13 @@ class FeatureConfig:
     """Settings of the wide-baseline features and their matching."""
 
     enabled: bool = True
-    """Detect ORB keypoints on keyframes and match them across weak KLT links."""
-    max_features: int = 1500
-    """Most ORB keypoints per keyframe (on the work image)."""
-    fast_threshold: int = 5
-    """FAST corner threshold (OpenCV's default is 20). Low: low-contrast walls still give corners, and
-    the `max_features` cap keeps the strongest where there are many. On the synthetic 1 Hz photo set,
-    5 instead of 20 raised the correct matches between neighbouring photos from 216 to 330 (median)."""
+    """Detect SIFT keypoints on keyframes and match them across weak KLT links."""
+    max_features: int = 2000
+    """Most SIFT keypoints per keyframe (the strongest)."""
+    contrast_threshold: float = 0.004
+    """SIFT's contrast threshold (OpenCV's default is 0.04). Low: low-contrast walls still give
+    keypoints (at the default, a nearly blank corridor wall gives a tenth of ORB's FAST corners at
+    threshold 5), and the `max_features` cap keeps the strongest where there are many."""
     break_survival: float = 0.5
     """A frame that keeps fewer than this fraction of the previous frame's KLT tracks is a break: it
     and the frame before it become keyframes."""
@@ -47,9 +53,7 @@ class FeatureConfig:
     exhaustive_below: int = 40
     """With at most this many keyframes next to weak links (a photo set), all their pairs are matched."""
     ratio: float = 0.8
-    """Lowe ratio of the best to the second-best Hamming distance."""
-    max_hamming: int = 64
-    """Largest Hamming distance (of 256 bits) of a match."""
+    """Lowe ratio of the best to the second-best descriptor distance."""
     ransac_threshold_px: float = 2.0
     """Essential-matrix inlier threshold of the verification (pixels)."""
     min_inliers: int = 25
@@ -63,30 +67,45 @@ class FeatureConfig:
 
 @dataclass
 class KeyframeFeatures:
-    """ORB keypoints of the keyframes: frame row, undistorted pixels and descriptor per keypoint."""
+    """SIFT keypoints of the keyframes: frame row, undistorted pixels, RootSIFT descriptor (for matching)
+    and ORB descriptor (for the tracks) per keypoint."""
 
     frame: list[np.ndarray] = field(default_factory=list)
     uv: list[np.ndarray] = field(default_factory=list)
+    sift: list[np.ndarray] = field(default_factory=list)
     desc: list[np.ndarray] = field(default_factory=list)
 
-    def add(self, row: int, uv: np.ndarray, desc: np.ndarray) -> None:
+    def add(self, row: int, uv: np.ndarray, sift: np.ndarray, desc: np.ndarray) -> None:
         self.frame.append(np.full(len(uv), row, np.int64))
         self.uv.append(np.asarray(uv, np.float64).reshape(-1, 2))
+        self.sift.append(np.asarray(sift, np.float32).reshape(-1, 128))
         self.desc.append(np.asarray(desc, np.uint8).reshape(-1, 32))
 
 
-class OrbDetector:
-    """Oriented multi-scale ORB keypoints and descriptors of one gray image."""
+class SiftDetector:
+    """SIFT keypoints of one gray image with RootSIFT descriptors, and the ORB descriptor of each."""
 
     def __init__(self, config: FeatureConfig):
-        self._orb = cv2.ORB_create(nfeatures=config.max_features, fastThreshold=config.fast_threshold)
+        self._sift = cv2.SIFT_create(config.max_features, 3, config.contrast_threshold, 10, 1.6)
+        self._orb = cv2.ORB_create(edgeThreshold=15, patchSize=15)
 
-    def detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Keypoint pixels (N, 2) and descriptors (N, 32) uint8."""
-        kps, desc = self._orb.detectAndCompute(gray, None)
-        if desc is None or not kps:
-            return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
-        return np.array([k.pt for k in kps], np.float64), desc
+    def detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Keypoint pixels (N, 2), RootSIFT descriptors (N, 128) float32 (unit length) and ORB
+        descriptors (N, 32) uint8; keypoints too near the border for ORB are left out."""
+        kps, sift = self._sift.detectAndCompute(gray, None)
+        if sift is None or not kps:
+            return np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros((0, 32), np.uint8)
+        uv = np.array([k.pt for k in kps], np.float64)
+        rows, desc = describe_corners(self._orb, gray, uv)
+        return uv[rows], root_sift(sift[rows]), desc
+
+
+def root_sift(sift: np.ndarray) -> np.ndarray:
+    """RootSIFT (Arandjelovic and Zisserman): L1-normalised, square-rooted, so that the dot product of
+    two descriptors is the Hellinger kernel, which matches better than SIFT's Euclidean distance."""
+    d = np.asarray(sift, np.float32)
+    d = d / np.maximum(d.sum(axis=1, keepdims=True), 1e-12)
+    return np.sqrt(d)
 
 
 @dataclass
@@ -100,18 +119,20 @@ class FeatureTracks:
     pairs_verified: int = 0
 
 
-def match_pair(
-    desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, max_hamming: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Matches passing the ratio and distance tests, one per keypoint of b (the closest): (M, 2) rows
-    (ia, ib) and their Hamming distances (M,)."""
+def match_pair(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Matches of unit descriptors passing Lowe's ratio test, one per keypoint of b (the closest):
+    (M, 2) rows (ia, ib) and their distances (M,)."""
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros((0, 2), np.int64), np.zeros(0)
-    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(desc_a, desc_b, k=2)
-    m = np.array([(p[0].queryIdx, p[0].trainIdx, p[0].distance, p[1].distance) for p in knn if len(p) == 2])
-    if len(m) == 0:
-        return np.zeros((0, 2), np.int64), np.zeros(0)
-    m = m[(m[:, 2] <= max_hamming) & (m[:, 2] <= ratio * m[:, 3])]
+    sim = desc_a @ desc_b.T  # cosine of unit vectors: squared distance 2 - 2 sim
+    ia = np.arange(len(desc_a))
+    ib = np.argmax(sim, axis=1)
+    best = sim[ia, ib]
+    sim[ia, ib] = -np.inf
+    d1 = np.maximum(2.0 - 2.0 * best, 0.0)
+    d2 = np.maximum(2.0 - 2.0 * sim.max(axis=1), 0.0)
+    ok = d1 <= ratio**2 * d2
+    m = np.column_stack([ia[ok], ib[ok], np.sqrt(d1[ok])])
     m = m[np.lexsort((m[:, 2], m[:, 1]))]  # by keypoint of b, closest first
     first = np.ones(len(m), bool)
     first[1:] = m[1:, 1] != m[:-1, 1]
@@ -143,7 +164,8 @@ def candidate_pairs(keyframes: np.ndarray, weak: np.ndarray, cfg: FeatureConfig)
     """Keyframe index pairs (i, j), i < j, to match: a weak link lies between them.
 
     `weak[i]` says whether keyframes i and i+1 share too few KLT tracks. Pairs up to `window`
-    keyframes apart; all pairs when the keyframes next to weak links are at most `exhaustive_below`.
+    keyframes apart; every pair when the keyframes next to weak links are at most `exhaustive_below` (a
+    photo set), KLT-linked or not: matching covisible keyframes far apart makes the long tracks.
     """
     n = len(keyframes)
     if n < 2 or not weak.any():
@@ -156,7 +178,7 @@ def candidate_pairs(keyframes: np.ndarray, weak: np.ndarray, cfg: FeatureConfig)
     pairs = []
     for i in range(n):
         for j in range(i + 1, n if exhaustive else min(n, i + cfg.window + 1)):
-            if breaks[j] > breaks[i] and (j - i <= cfg.window or (near[i] and near[j])):
+            if exhaustive or (breaks[j] > breaks[i] and j - i <= cfg.window):
                 pairs.append((i, j))
     return pairs
 
@@ -224,7 +246,7 @@ def feature_tracks(
     first_id: int,
     cfg: FeatureConfig,
 ) -> FeatureTracks:
-    """Match the keyframes' ORB keypoints across weak KLT links and chain them into tracks."""
+    """Match the keyframes' SIFT keypoints across weak KLT links and chain them into tracks."""
     empty = FeatureTracks(
         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
     )
@@ -232,12 +254,14 @@ def feature_tracks(
         return empty
     node_frame = np.concatenate(feats.frame)
     node_uv = np.concatenate(feats.uv)
+    node_sift = np.concatenate(feats.sift)
     node_desc = np.concatenate(feats.desc)
     keyframes = np.unique(node_frame)
     starts = np.searchsorted(node_frame, keyframes) if np.all(np.diff(node_frame) >= 0) else None
     if starts is None:  # keypoints were added out of frame order
         order = np.argsort(node_frame, kind="stable")
-        node_frame, node_uv, node_desc = node_frame[order], node_uv[order], node_desc[order]
+        node_frame, node_uv = node_frame[order], node_uv[order]
+        node_sift, node_desc = node_sift[order], node_desc[order]
         starts = np.searchsorted(node_frame, keyframes)
     ends = np.append(starts[1:], len(node_frame))
     weak = weak_links(point_frame, point_track, keyframes, cfg.weak_link_tracks)
@@ -246,7 +270,7 @@ def feature_tracks(
     verified = 0
     for i, j in pairs:
         sa, sb = slice(starts[i], ends[i]), slice(starts[j], ends[j])
-        m, dist = match_pair(node_desc[sa], node_desc[sb], cfg.ratio, cfg.max_hamming)
+        m, dist = match_pair(node_sift[sa], node_sift[sb], cfg.ratio)
         if len(m) < cfg.min_inliers:
             continue
         ok = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], K, cfg.ransac_threshold_px, cfg.seed)

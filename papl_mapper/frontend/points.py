@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from papl_mapper.frontend.descriptors import hamming_pairs
+from papl_mapper.frontend.descriptors import describe_corners, hamming_pairs
 from papl_mapper.frontend.klt import FlowConfig, predict_flow, track_klt
 
 log = logging.getLogger(__name__)
@@ -139,11 +139,9 @@ class PointTracker:
         """ORB descriptors of the live tracks (after re-association); returns ids (D,) and (D, 32) uint8."""
         if len(self.ids) == 0:
             return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
-        kps = [cv2.KeyPoint(float(x), float(y), 15.0, -1, 0, 0, i) for i, (x, y) in enumerate(self.uv)]
-        kps, desc = self._orb.compute(gray, kps)
-        if desc is None or not kps:
+        rows, desc = describe_corners(self._orb, gray, self.uv)
+        if len(rows) == 0:
             return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
-        rows = np.array([k.class_id for k in kps], np.int64)
         if self.config.reassociate:
             self._reassociate(rows, desc)
         ids = self.ids[rows]

@@ -22,7 +22,7 @@ import numpy as np
 
 from papl_mapper.errors import InputError
 from papl_mapper.frontend.camera import Undistorter, fit_camera
-from papl_mapper.frontend.features import FeatureConfig, KeyframeFeatures, OrbDetector, feature_tracks
+from papl_mapper.frontend.features import FeatureConfig, KeyframeFeatures, SiftDetector, feature_tracks
 from papl_mapper.frontend.keyframes import KeyframeConfig, KeyframeSelector
 from papl_mapper.frontend.klt import FlowConfig
 from papl_mapper.frontend.lines import LBD, LineConfig, LineTracker, SegmentDetector
@@ -69,7 +69,7 @@ class FrontendConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     """Keyframe selection."""
     features: FeatureConfig = field(default_factory=FeatureConfig)
-    """Wide-baseline ORB features on keyframes, matched where KLT breaks (jumps, photo sets)."""
+    """Wide-baseline SIFT features on keyframes, matched where KLT breaks (jumps, photo sets)."""
     vp: VPConfig = field(default_factory=lambda: VPConfig(track_gate_deg=3.0))
     """Vanishing directions (Atlanta world with a vertical prior). The vertical prior is carried
     from frame to frame by the point tracks' rotation (about 0.1 deg error per frame on the
@@ -136,7 +136,7 @@ class FrontendStats:
     skipped: int = 0
     bad_frames: list[str] = field(default_factory=list)  # frames that did not decode: "name (reason)"
     breaks: int = 0  # frames where KLT lost most tracks of the previous frame (a jump)
-    feature_tracks: int = 0  # tracks chained from ORB matches across weak KLT links
+    feature_tracks: int = 0  # tracks chained from SIFT matches across weak KLT links
     feature_pairs_verified: int = 0
     keyframes: int = 0
     keyframe_reasons: dict[str, int] = field(default_factory=dict)  # first/forced/parallax/survival/...
@@ -236,7 +236,7 @@ class _Run:
         self.lines = LineTracker(config.lines)
         self.lbd = LBD()
         self.selector = KeyframeSelector(config.keyframes)
-        self.orb = OrbDetector(config.features) if config.features.enabled else None
+        self.sift = SiftDetector(config.features) if config.features.enabled else None
         self.feats = KeyframeFeatures()
         # the last keyframes (row, point ids, image, described) and how many more to describe
         self._recent_kf: deque[list] = deque(maxlen=max(1, config.features.window))
@@ -291,25 +291,25 @@ class _Run:
 
     def _is_break(self, ids: np.ndarray) -> bool:
         """KLT kept fewer than `break_survival` of the previous frame's tracks: the image jumped."""
-        if not self.p_track or self.orb is None:
+        if not self.p_track or self.sift is None:
             return False
         prev = self.p_track[-1]
         return len(prev) > 0 and np.isin(prev, ids).mean() < self.config.features.break_survival
 
     def _keyframe_before_break(self) -> None:
         """Make the last processed frame a keyframe with features, so a match can bridge the break."""
-        if self.orb is None or not self.is_kf or self.is_kf[-1] or self.prev_gray is None:
+        if self.sift is None or not self.is_kf or self.is_kf[-1] or self.prev_gray is None:
             return
         self.is_kf[-1] = True
         self.stats.keyframe_reasons["break"] = self.stats.keyframe_reasons.get("break", 0) + 1
         self._keyframe_features(len(self.is_kf) - 1, self.p_track[-1], self.prev_gray)
 
     def _keyframe_features(self, row: int, ids: np.ndarray, gray: np.ndarray, broken: bool = False) -> None:
-        """ORB keypoints on the keyframes within `features.window` of a weak KLT link (a break, or few
+        """SIFT keypoints on the keyframes within `features.window` of a weak KLT link (a break, or few
         tracks shared with the last keyframe), and only there: a video that KLT follows throughout pays
         nothing. The last `window` keyframe images are kept for this. Full-resolution keypoints: on the
         work image their precision halves (KITTI: 0.104 vs 0.069 m ATE)."""
-        if self.orb is None:
+        if self.sift is None:
             return
         cfg = self.config.features
         recent = self._recent_kf
@@ -323,8 +323,8 @@ class _Run:
             return
         for kf in recent if weak else (recent[-1],):
             if not kf[3]:
-                uv, desc = self.orb.detect(kf[2])
-                self.feats.add(kf[0], self.und.points(uv), desc)
+                uv, sift, desc = self.sift.detect(kf[2])
+                self.feats.add(kf[0], self.und.points(uv), sift, desc)
                 kf[3] = True
 
     def frame(self, frame: Frame, pool: ThreadPoolExecutor | None) -> str:
@@ -415,7 +415,7 @@ class _Run:
         desc_row = _cat(self.pd_row, np.int64, (0,))
         desc = _cat(self.pd_desc, np.uint8, (0, 32))
         out = {"frame": frame, "track": track, "uv": uv, "desc_row": desc_row, "desc": desc}
-        if self.orb is None or not self.feats.frame:
+        if self.sift is None or not self.feats.frame:
             return out
         t0 = time.perf_counter()
         ft = feature_tracks(
