@@ -40,6 +40,7 @@ class LevenbergMarquardt:
         self.keys = list(values.keys())
         self.dims = [len(zero.at(k)) for k in self.keys]
         self.ordering: gtsam.Ordering | None = None
+        self._damping_cache: dict[float, gtsam.GaussianFactorGraph] = {}
         self.linearize_s = 0.0
         self.solve_s = 0.0
         self.error_s = 0.0
@@ -47,12 +48,19 @@ class LevenbergMarquardt:
         self.n_solve = 0
 
     def _damping(self, lam: float) -> gtsam.GaussianFactorGraph:
+        """The prior factors sqrt(lam) * I on every variable; the last two lambdas' are kept (lambda
+        moves by powers of `lambda_factor`, so one problem meets the same few values again and again)."""
+        damp = self._damping_cache.get(lam)
+        if damp is not None:
+            return damp
         damp = gtsam.GaussianFactorGraph()
         s = np.sqrt(lam)
+        units = {d: (s * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)) for d in set(self.dims)}
         for key, d in zip(self.keys, self.dims, strict=True):
-            damp.push_back(
-                gtsam.JacobianFactor(key, s * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d))
-            )
+            damp.push_back(gtsam.JacobianFactor(key, *units[d]))
+        if len(self._damping_cache) >= 2:
+            self._damping_cache.pop(next(iter(self._damping_cache)))
+        self._damping_cache[lam] = damp
         return damp
 
     def iterate(self) -> bool:

@@ -21,6 +21,7 @@ completion and revisits compare one kind of descriptor across both kinds of trac
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -245,8 +246,10 @@ def feature_tracks(
     point_track: np.ndarray,
     first_id: int,
     cfg: FeatureConfig,
+    workers: int = 1,
 ) -> FeatureTracks:
-    """Match the keyframes' SIFT keypoints across weak KLT links and chain them into tracks."""
+    """Match the keyframes' SIFT keypoints across weak KLT links and chain them into tracks; `workers`
+    threads match the keyframe pairs."""
     empty = FeatureTracks(
         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
     )
@@ -266,19 +269,23 @@ def feature_tracks(
     ends = np.append(starts[1:], len(node_frame))
     weak = weak_links(point_frame, point_track, keyframes, cfg.weak_link_tracks)
     pairs = candidate_pairs(keyframes, weak, cfg)
-    edges, costs = [], []
-    verified = 0
-    for i, j in pairs:
-        sa, sb = slice(starts[i], ends[i]), slice(starts[j], ends[j])
+
+    def link(pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+        """Verified matches of one keyframe pair as node rows (M, 2) and their distances, or None."""
+        sa, sb = (slice(starts[k], ends[k]) for k in pair)
         m, dist = match_pair(node_sift[sa], node_sift[sb], cfg.ratio)
         if len(m) < cfg.min_inliers:
-            continue
+            return None
         ok = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], K, cfg.ransac_threshold_px, cfg.seed)
         if ok.sum() < max(cfg.min_inliers, cfg.min_inlier_ratio * len(m)):
-            continue
-        verified += 1
-        edges.append(np.column_stack([m[ok, 0] + starts[i], m[ok, 1] + starts[j]]))
-        costs.append(dist[ok])
+            return None
+        return np.column_stack([m[ok, 0] + sa.start, m[ok, 1] + sb.start]), dist[ok]
+
+    # BLAS and OpenCV release the GIL: pairs are matched in parallel, the results kept in pair order
+    with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="features") as pool:
+        links = [r for r in pool.map(link, pairs) if r is not None]
+    verified = len(links)
+    edges, costs = [e for e, _ in links], [c for _, c in links]
     if not edges:
         log.debug("features: %d keyframe pairs matched, none verified", len(pairs))
         return empty

@@ -16,6 +16,7 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -39,9 +40,11 @@ ProgressCallback = Callable[[int, int, str], None]
 # seconds per step; with parallel=True "lines" runs in a worker thread during "points" and
 # "lines_wait" is the main thread waiting for it; "decode" is waiting for the decoder thread;
 # with vp_thread=True "vp" runs in a worker thread beside the next frames and "vp_wait" is the main
-# thread waiting for it after the last frame
+# thread waiting for it after the last frame; with parallel=True the keyframes' SIFT keypoints are
+# detected in a worker thread and "features_wait" is the main thread waiting for the last of them
 STEPS = (
     "decode",
+    "features_wait",
     "matching",
     "convert",
     "points",
@@ -174,7 +177,8 @@ def process(
         cv2.setNumThreads(config.opencv_threads)
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="segments") if config.parallel else None
     vp_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vanishing") if config.vp_thread else None
-    run = _Run(recording, camera, config, stats, vp_pool)
+    features_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sift") if config.parallel else None
+    run = _Run(recording, camera, config, stats, vp_pool, features_pool)
     try:
         for done, frame in enumerate(recording, 1):
             message = run.frame(frame, pool)
@@ -182,7 +186,7 @@ def process(
                 progress(done, run.total, message)
         tracks = run.finish()
     finally:
-        for p in (pool, vp_pool):
+        for p in (pool, vp_pool, features_pool):
             if p is not None:
                 p.shutdown(wait=True, cancel_futures=True)
         cv2.setNumThreads(cv_threads)
@@ -224,6 +228,7 @@ class _Run:
         config: FrontendConfig,
         stats: FrontendStats,
         vp_pool: ThreadPoolExecutor | None = None,
+        features_pool: ThreadPoolExecutor | None = None,
     ):
         w, h = recording.width, recording.height
         self.recording, self.config, self.stats = recording, config, stats
@@ -238,6 +243,8 @@ class _Run:
         self.selector = KeyframeSelector(config.keyframes)
         self.sift = SiftDetector(config.features) if config.features.enabled else None
         self.feats = KeyframeFeatures()
+        self.features_pool = features_pool
+        self.feature_jobs: list[tuple[int, Any]] = []  # (frame row, Future or detection) per keyframe
         # the last keyframes (row, point ids, image, described) and how many more to describe
         self._recent_kf: deque[list] = deque(maxlen=max(1, config.features.window))
         self._describe_next = 0
@@ -323,9 +330,16 @@ class _Run:
             return
         for kf in recent if weak else (recent[-1],):
             if not kf[3]:
-                uv, sift, desc = self.sift.detect(kf[2])
-                self.feats.add(kf[0], self.und.points(uv), sift, desc)
+                job = self.features_pool.submit(self.sift.detect, kf[2]) if self.features_pool else None
+                self.feature_jobs.append((kf[0], job if job is not None else self.sift.detect(kf[2])))
                 kf[3] = True
+
+    def _collect_features(self) -> None:
+        """The keyframes' SIFT keypoints, detected in the worker thread while later frames were tracked."""
+        for row, job in self.feature_jobs:
+            uv, sift, desc = job.result() if isinstance(job, Future) else job
+            self.feats.add(row, self.und.points(uv), sift, desc)
+        self.feature_jobs = []
 
     def frame(self, frame: Frame, pool: ThreadPoolExecutor | None) -> str:
         """Process one decoded frame; returns a progress message."""
@@ -415,6 +429,9 @@ class _Run:
         desc_row = _cat(self.pd_row, np.int64, (0,))
         desc = _cat(self.pd_desc, np.uint8, (0, 32))
         out = {"frame": frame, "track": track, "uv": uv, "desc_row": desc_row, "desc": desc}
+        t0 = time.perf_counter()
+        self._collect_features()
+        self.stats.seconds["features_wait"] = time.perf_counter() - t0
         if self.sift is None or not self.feats.frame:
             return out
         t0 = time.perf_counter()
@@ -425,6 +442,7 @@ class _Run:
             track,
             int(track.max(initial=-1)) + 1,
             self.config.features,
+            workers=2 if self.config.parallel else 1,
         )
         self.stats.seconds["matching"] = time.perf_counter() - t0
         self.stats.feature_tracks = len(np.unique(ft.track))
