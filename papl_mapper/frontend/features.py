@@ -118,6 +118,8 @@ class FeatureTracks:
     uv: np.ndarray  # (K, 2) undistorted pixels
     desc: np.ndarray  # (K, 32) uint8, the descriptor of each observation
     pairs_verified: int = 0
+    geometry: list[tuple[int, int, np.ndarray]] = field(default_factory=list)
+    """(frame row a, frame row b, essential matrix E with x_b^T E x_a = 0) of each verified pair."""
 
 
 def match_pair(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
@@ -143,8 +145,9 @@ def match_pair(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> tuple[np
 
 def verify_pair(
     uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, threshold_px: float, seed: int = 0
-) -> np.ndarray:
-    """Inlier mask of matched undistorted pixels under an essential matrix (OpenCV's USAC).
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Inlier mask of matched undistorted pixels under an essential matrix (OpenCV's USAC), and the
+    matrix (None where none was found).
 
     The essential matrix, not the fundamental: with the camera known it has 5 degrees of freedom
     instead of 7, so look-alike textures (repeated tiles, doors) fit it far less often. USAC rather
@@ -153,12 +156,12 @@ def verify_pair(
     that chaining tracks needs.
     """
     if len(uv_a) < 8:
-        return np.zeros(len(uv_a), bool)
+        return np.zeros(len(uv_a), bool), None
     cv2.setRNGSeed(seed)
     E, mask = cv2.findEssentialMat(uv_a, uv_b, K, cv2.USAC_FAST, 0.999, threshold_px)
-    if E is None or mask is None:
-        return np.zeros(len(uv_a), bool)
-    return mask.ravel().astype(bool)
+    if E is None or mask is None or E.shape != (3, 3):
+        return np.zeros(len(uv_a), bool), None
+    return mask.ravel().astype(bool), E
 
 
 def candidate_pairs(keyframes: np.ndarray, weak: np.ndarray, cfg: FeatureConfig) -> list[tuple[int, int]]:
@@ -202,14 +205,21 @@ def weak_links(
     return weak
 
 
-def chain_tracks(node_frame: np.ndarray, edges: np.ndarray, edge_cost: np.ndarray) -> np.ndarray:
-    """Union-find of matched keypoints into tracks, best matches first, never two nodes of one frame.
+def chain_tracks(
+    node_frame: np.ndarray | list[set[int]], edges: np.ndarray, edge_cost: np.ndarray
+) -> np.ndarray:
+    """Union-find of matched nodes into tracks, best matches first, never two nodes of one frame.
 
+    A node is a keypoint (`node_frame` holds its frame) or a track of its own (its set of frames).
     Returns a component label per node, -1 for nodes left alone.
     """
     n = len(node_frame)
     parent = np.arange(n)
     frames: dict[int, set[int]] = {}
+
+    def frames_of(a: int) -> set[int]:
+        f = node_frame[a]
+        return set(f) if isinstance(f, set) else {int(f)}
 
     def root(a: int) -> int:
         while parent[a] != a:
@@ -221,8 +231,8 @@ def chain_tracks(node_frame: np.ndarray, edges: np.ndarray, edge_cost: np.ndarra
         a, b = root(int(edges[e, 0])), root(int(edges[e, 1]))
         if a == b:
             continue
-        fa = frames.get(a, {int(node_frame[a])})
-        fb = frames.get(b, {int(node_frame[b])})
+        fa = frames.get(a) or frames_of(a)
+        fb = frames.get(b) or frames_of(b)
         if fa & fb:
             continue  # would see one track twice in a frame: a wrong match somewhere
         if len(fa) < len(fb):
@@ -276,16 +286,17 @@ def feature_tracks(
         m, dist = match_pair(node_sift[sa], node_sift[sb], cfg.ratio)
         if len(m) < cfg.min_inliers:
             return None
-        ok = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], K, cfg.ransac_threshold_px, cfg.seed)
-        if ok.sum() < max(cfg.min_inliers, cfg.min_inlier_ratio * len(m)):
+        ok, E = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], K, cfg.ransac_threshold_px, cfg.seed)
+        if E is None or ok.sum() < max(cfg.min_inliers, cfg.min_inlier_ratio * len(m)):
             return None
-        return np.column_stack([m[ok, 0] + sa.start, m[ok, 1] + sb.start]), dist[ok]
+        geometry = (int(keyframes[pair[0]]), int(keyframes[pair[1]]), E)
+        return np.column_stack([m[ok, 0] + sa.start, m[ok, 1] + sb.start]), dist[ok], geometry
 
     # BLAS and OpenCV release the GIL: pairs are matched in parallel, the results kept in pair order
     with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="features") as pool:
         links = [r for r in pool.map(link, pairs) if r is not None]
     verified = len(links)
-    edges, costs = [e for e, _ in links], [c for _, c in links]
+    edges, costs = [e for e, _, _ in links], [c for _, c, _ in links]
     if not edges:
         log.debug("features: %d keyframe pairs matched, none verified", len(pairs))
         return empty
@@ -304,4 +315,5 @@ def feature_tracks(
         uv=node_uv[keep],
         desc=node_desc[keep],
         pairs_verified=verified,
+        geometry=[g for _, _, g in links],
     )

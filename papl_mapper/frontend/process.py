@@ -26,6 +26,7 @@ from papl_mapper.frontend.camera import Undistorter, fit_camera
 from papl_mapper.frontend.features import FeatureConfig, KeyframeFeatures, SiftDetector, feature_tracks
 from papl_mapper.frontend.keyframes import KeyframeConfig, KeyframeSelector
 from papl_mapper.frontend.klt import FlowConfig
+from papl_mapper.frontend.line_links import LineLinkConfig, link_line_tracks
 from papl_mapper.frontend.lines import LBD, LineConfig, LineTracker, SegmentDetector
 from papl_mapper.frontend.points import PointConfig, PointTracker
 from papl_mapper.frontend.vanishing import VPConfig
@@ -73,6 +74,8 @@ class FrontendConfig:
     """Keyframe selection."""
     features: FeatureConfig = field(default_factory=FeatureConfig)
     """Wide-baseline SIFT features on keyframes, matched where KLT breaks (jumps, photo sets)."""
+    line_links: LineLinkConfig = field(default_factory=LineLinkConfig)
+    """Segment tracks joined across the keyframe pairs the wide-baseline features verified."""
     vp: VPConfig = field(default_factory=lambda: VPConfig(track_gate_deg=3.0))
     """Vanishing directions (Atlanta world with a vertical prior). The vertical prior is carried
     from frame to frame by the point tracks' rotation (about 0.1 deg error per frame on the
@@ -140,6 +143,7 @@ class FrontendStats:
     bad_frames: list[str] = field(default_factory=list)  # frames that did not decode: "name (reason)"
     breaks: int = 0  # frames where KLT lost most tracks of the previous frame (a jump)
     feature_tracks: int = 0  # tracks chained from SIFT matches across weak KLT links
+    line_tracks_joined: int = 0  # segment tracks joined into others across verified keyframe pairs
     feature_pairs_verified: int = 0
     keyframes: int = 0
     keyframe_reasons: dict[str, int] = field(default_factory=dict)  # first/forced/parallax/survival/...
@@ -421,14 +425,15 @@ class _Run:
         clock.restart()
         return f"frame {frame.index}: {k} points, {s} segments{', keyframe' if kf else ''}"
 
-    def _point_observations(self, is_kf: np.ndarray) -> dict[str, np.ndarray]:
-        """KLT point observations with the feature tracks matched across weak links added, in frame order."""
+    def _point_observations(self, is_kf: np.ndarray) -> dict[str, Any]:
+        """KLT point observations with the feature tracks matched across weak links added, in frame
+        order, and the geometry of the keyframe pairs the features verified."""
         frame = np.concatenate(self.p_frame)
         track = self.points.resolve(np.concatenate(self.p_track))
         uv = np.concatenate(self.p_uv).reshape(-1, 2)
         desc_row = _cat(self.pd_row, np.int64, (0,))
         desc = _cat(self.pd_desc, np.uint8, (0, 32))
-        out = {"frame": frame, "track": track, "uv": uv, "desc_row": desc_row, "desc": desc}
+        out = {"frame": frame, "track": track, "uv": uv, "desc_row": desc_row, "desc": desc, "geometry": []}
         t0 = time.perf_counter()
         self._collect_features()
         self.stats.seconds["features_wait"] = time.perf_counter() - t0
@@ -458,6 +463,7 @@ class _Run:
             "uv": np.concatenate([uv, ft.uv])[order],
             "desc_row": new_pos[np.concatenate([desc_row, len(frame) + np.arange(len(ft.frame))])],
             "desc": np.concatenate([desc, ft.desc]),
+            "geometry": ft.geometry,
         }
 
     def finish(self) -> Tracks:
@@ -492,6 +498,19 @@ class _Run:
             vp_dirs, vertical_vp = np.full((F, 3, 3), np.nan), np.full(F, -1, np.int64)
         self._clock.lap("vp_wait")
         points = self._point_observations(is_kf)
+        line_desc_row = _cat(self.ld_row, np.int64, (0,))
+        line_desc = _cat(self.ld_desc, np.uint8, (0, 32))
+        line_track, stats.line_tracks_joined = link_line_tracks(
+            line_frame,
+            self.lines.resolve(np.concatenate(self.l_track)),
+            line_xy,
+            line_desc_row,
+            line_desc,
+            points["geometry"],
+            self.und.undistorted_camera.K,
+            self.config.line_links,
+            self.config.lines,
+        )
         tracks = Tracks(
             camera=self.und.undistorted_camera,
             frame_index=np.array(self.frame_index, np.int64),
@@ -501,15 +520,15 @@ class _Run:
             point_track=points["track"],
             point_uv=points["uv"],
             line_frame=line_frame,
-            line_track=self.lines.resolve(np.concatenate(self.l_track)),
+            line_track=line_track,
             line_xy=line_xy,
             line_vp=line_vp,
             vp_dirs_c=vp_dirs,
             vertical_vp=vertical_vp,
             point_desc_row=points["desc_row"],
             point_desc=points["desc"],
-            line_desc_row=_cat(self.ld_row, np.int64, (0,)),
-            line_desc=_cat(self.ld_desc, np.uint8, (0, 32)),
+            line_desc_row=line_desc_row,
+            line_desc=line_desc,
             skipped_frames=np.array(self.skipped, np.int64),
         )
         tracks.validate()
