@@ -68,8 +68,9 @@ class FeatureConfig:
 
 @dataclass
 class KeyframeFeatures:
-    """SIFT keypoints of the keyframes: frame row, undistorted pixels, RootSIFT descriptor (for matching)
-    and ORB descriptor (for the tracks) per keypoint."""
+    """SIFT keypoints of the keyframes: frame row, undistorted pixels, RootSIFT descriptor (for matching,
+    kept as 255ths: a quarter of the memory of floats for keyframes held until the end) and ORB
+    descriptor (for the tracks) per keypoint."""
 
     frame: list[np.ndarray] = field(default_factory=list)
     uv: list[np.ndarray] = field(default_factory=list)
@@ -79,7 +80,7 @@ class KeyframeFeatures:
     def add(self, row: int, uv: np.ndarray, sift: np.ndarray, desc: np.ndarray) -> None:
         self.frame.append(np.full(len(uv), row, np.int64))
         self.uv.append(np.asarray(uv, np.float64).reshape(-1, 2))
-        self.sift.append(np.asarray(sift, np.float32).reshape(-1, 128))
+        self.sift.append(np.round(np.asarray(sift, np.float32).reshape(-1, 128) * 255).astype(np.uint8))
         self.desc.append(np.asarray(desc, np.uint8).reshape(-1, 32))
 
 
@@ -120,6 +121,12 @@ class FeatureTracks:
     pairs_verified: int = 0
     geometry: list[tuple[int, int, np.ndarray]] = field(default_factory=list)
     """(frame row a, frame row b, essential matrix E with x_b^T E x_a = 0) of each verified pair."""
+
+
+def _unit(q: np.ndarray) -> np.ndarray:
+    """Unit-length float rows of quantised descriptors."""
+    d = q.astype(np.float32)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
 def match_pair(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
@@ -283,7 +290,7 @@ def feature_tracks(
     def link(pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
         """Verified matches of one keyframe pair as node rows (M, 2) and their distances, or None."""
         sa, sb = (slice(starts[k], ends[k]) for k in pair)
-        m, dist = match_pair(node_sift[sa], node_sift[sb], cfg.ratio)
+        m, dist = match_pair(_unit(node_sift[sa]), _unit(node_sift[sb]), cfg.ratio)
         if len(m) < cfg.min_inliers:
             return None
         ok, E = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], K, cfg.ransac_threshold_px, cfg.seed)
