@@ -85,7 +85,10 @@ def fit_camera(camera: Camera, width: int, height: int, name: str = "camera") ->
 def _camera_from_K(K: np.ndarray, dist: np.ndarray | None, width: int, height: int, where: str) -> Camera:
     K = np.asarray(K, np.float64).reshape(3, 3)
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(f"{where}: camera matrix has non-positive or non-finite focal lengths: {K.tolist()}")
+        raise InputError(
+            f"{where}: camera matrix has non-positive or non-finite focal lengths "
+            f"(fx {K[0, 0]:g}, fy {K[1, 1]:g})"
+        )
     d = np.zeros(5) if dist is None else np.asarray(dist, np.float64).ravel()
     if not np.isfinite(d).all():
         raise InputError(f"{where}: distortion coefficients are not finite")
@@ -175,6 +178,14 @@ def read_kitti_calib(path: Path, key: str | None = None) -> Camera:
 
 
 def _read_opencv_storage(path: Path) -> Camera:
+    try:
+        return _read_opencv_nodes(path)
+    except (cv2.error, SystemError, ValueError, TypeError) as exc:  # OpenCV's parser raises these
+        reason = str(exc).strip().splitlines()[-1][:160] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"{path}: not a readable OpenCV YAML/JSON camera file ({reason})") from exc
+
+
+def _read_opencv_nodes(path: Path) -> Camera:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     try:
         if not fs.isOpened():
@@ -217,7 +228,7 @@ def _read_plain_json(path: Path, data: dict) -> Camera:
             keys = ("width", "height", "fx", "fy", "cx", "cy", "distortion", "model")
             cam = Camera.from_dict({k: data[k] for k in keys if k in data})
         except (TypeError, ValueError) as exc:
-            raise InputError(f"{path}: not a valid camera.json ({exc})") from exc
+            raise InputError(f"{path}: not a valid camera.json: {exc}") from exc
         return _camera_from_K(cam.K, cam.distortion, cam.width, cam.height, str(path))
     K = data.get("camera_matrix", data.get("K"))
     if isinstance(K, dict) and "data" in K:
@@ -227,13 +238,25 @@ def _read_plain_json(path: Path, data: dict) -> Camera:
     dist = data.get("distortion_coefficients", data.get("dist_coeffs", data.get("distortion")))
     if isinstance(dist, dict) and "data" in dist:
         dist = dist["data"]
-    w = int(data.get("image_width", data.get("width", 0)))
-    h = int(data.get("image_height", data.get("height", 0)))
     try:
-        dist_arr = None if dist is None else np.array(dist, float)
-        return _camera_from_K(np.array(K, np.float64), dist_arr, w, h, str(path))
-    except ValueError as exc:
-        raise InputError(f"{path}: camera_matrix is not 3x3 ({exc})") from exc
+        w = _size(data.get("image_width", data.get("width", 0)))
+        h = _size(data.get("image_height", data.get("height", 0)))
+        dist_arr = None if dist is None else np.array(dist, float).ravel()
+        K_arr = np.array(K, np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{path}: not a valid JSON camera file ({exc})") from exc
+    if K_arr.size != 9:
+        raise InputError(f"{path}: camera_matrix is not 3x3 (it has {K_arr.size} numbers)")
+    return _camera_from_K(K_arr, dist_arr, w, h, str(path))
+
+
+def _size(value: object) -> int:
+    """An image width or height from a camera file: a whole number in 0..65536, else ValueError."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
+        raise ValueError(f"image size {value!r:.40} is not a whole number")
+    if not 0 <= value <= 1 << 16:
+        raise ValueError(f"image size {value} is out of range (0..65536)")
+    return int(value)
 
 
 def read_camera_file(path: str | Path) -> Camera:
@@ -246,11 +269,15 @@ def read_camera_file(path: str | Path) -> Camera:
         text = path.read_text()
     except UnicodeDecodeError as exc:
         raise InputError(f"{path}: not a text camera file") from exc
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the camera file ({exc.strerror or exc})") from exc
     if suffix == ".json" or text.lstrip().startswith("{"):
         try:
             data = json.loads(text)
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, RecursionError) as exc:
             raise InputError(f"{path}: not valid JSON ({exc})") from exc
+        if not isinstance(data, dict):
+            raise InputError(f"{path}: a JSON camera file must hold an object, not a {type(data).__name__}")
         if isinstance(data, dict) and ("fx" in data or not _is_opencv_json(data)):
             return _read_plain_json(path, data)
         return _read_opencv_storage(path)
@@ -288,9 +315,22 @@ def camera_for_recording(
     cam = read_camera_file(path)
     original = (cam.width, cam.height)
     fitted = fit_camera(cam, width, height, str(path))
+    check_intrinsics(fitted, str(path))
     check_distortion(fitted, str(path))
     scaled = original if original != (width, height) and cam.width > 0 else None
     return CameraSource(fitted, str(path), guessed=False, scaled_from=scaled)
+
+
+def check_intrinsics(camera: Camera, name: str) -> None:
+    """InputError when the focal lengths give a field of view outside 1..179 deg (the range `guess_camera`
+    accepts): a wrong file, or one for another image size."""
+    for f, size, axis in ((camera.fx, camera.width, "horizontal"), (camera.fy, camera.height, "vertical")):
+        fov = math.degrees(2 * math.atan2(size / 2.0, abs(f)))
+        if not 1.0 <= fov < 179.0:
+            raise InputError(
+                f"{name}: implausible focal length {f:g} px for {camera.width}x{camera.height} images "
+                f"({axis} field of view {fov:.4g} deg, expected 1..179); check the camera file"
+            )
 
 
 MAX_CORNER_STRETCH = 2.5
