@@ -22,7 +22,7 @@ from pathlib import Path
 from papl_mapper.errors import OutputError
 
 _KINDS = {
-    stat.S_IFDIR: "a folder; give a file name",
+    stat.S_IFDIR: "a folder",
     stat.S_IFIFO: "a FIFO (named pipe)",
     stat.S_IFCHR: "a character device",
     stat.S_IFBLK: "a block device",
@@ -57,7 +57,8 @@ def output_target(path: str | os.PathLike) -> Path:
         raise OutputError(f"{path}: cannot be written ({exc.strerror or exc})") from exc
     if mode is not None and not stat.S_ISREG(mode):
         kind = _KINDS.get(stat.S_IFMT(mode), "not a regular file")
-        raise OutputError(f"{path}: is {kind}; papl-map only replaces regular files")
+        hint = "give a file name" if stat.S_ISDIR(mode) else "papl-map only replaces regular files"
+        raise OutputError(f"{path}: is {kind}; {hint}")
     parent = target.parent if str(target.parent) else Path(".")
     if not parent.is_dir():
         raise OutputError(f"{path}: the folder {parent} does not exist; create it first")

@@ -9,12 +9,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import math
 import signal
 import sys
 import threading
 
 from papl_mapper import __version__
-from papl_mapper.errors import PaplError
+from papl_mapper.errors import InputError, PaplError
 
 #: Sub-command modules, in the order `--help` lists them.
 COMMANDS = ("run", "batch", "scale", "info", "synth", "eval", "export", "render", "report", "view")
@@ -80,6 +81,7 @@ def main(argv: list[str] | None = None) -> int:
 def _call(args: argparse.Namespace) -> int:
     """Run the command; every expected failure becomes one line on stderr and an exit code."""
     try:
+        _check_numbers(args)
         return int(args.func(args) or 0)
     except PaplError as exc:
         if args.debug:
@@ -102,6 +104,13 @@ def _call(args: argparse.Namespace) -> int:
         if args.debug:
             raise
         return _fail(args, "out of memory (an input is too large for this machine)", 2)
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """Every number on the command line is finite: argparse's float() takes 'nan' and 'inf'."""
+    for name, value in vars(args).items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise InputError(f"--{name.replace('_', '-')} {value}: give a finite number")
 
 
 def _fail(args: argparse.Namespace, message: str, code: int) -> int:

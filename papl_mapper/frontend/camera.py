@@ -181,7 +181,8 @@ def _read_opencv_storage(path: Path) -> Camera:
     try:
         return _read_opencv_nodes(path)
     except (cv2.error, SystemError, ValueError, TypeError) as exc:  # OpenCV's parser raises these
-        reason = str(exc).strip().splitlines()[-1][:160] if str(exc).strip() else type(exc).__name__
+        cause = exc.__cause__ or exc.__context__ or exc  # SystemError wraps the cv2.error that says why
+        reason = (str(cause).strip().splitlines() or [type(cause).__name__])[-1][:160]
         raise InputError(f"{path}: not a readable OpenCV YAML/JSON camera file ({reason})") from exc
 
 
