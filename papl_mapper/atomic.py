@@ -97,6 +97,11 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
         yield Path(tmp)
         os.chmod(tmp, output_mode(target))
         os.replace(tmp, target)
+    except OutputError as exc:  # a nested atomic write into our temporary file: name the real output
+        Path(tmp).unlink(missing_ok=True)
+        if tmp in str(exc):
+            raise OutputError(str(exc).replace(tmp, str(path))) from exc
+        raise
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)
         if exc.filename not in (None, tmp, str(target)):

@@ -126,10 +126,13 @@ def run(args: argparse.Namespace) -> int:
             progress=progress_bar,
         )
     except RunInterrupted as exc:
-        message = f"papl-map run: {_interrupted(exc, args.out)}"
+        from papl_mapper.cli import Terminated
+
+        term = isinstance(exc.__cause__, Terminated)
+        message = f"papl-map run: {'SIGTERM: ' if term else ''}{_interrupted(exc, args.out)}"
         handler.handle(log.makeRecord(log.name, logging.ERROR, __file__, 0, message, None, None))
         print(message, file=sys.stderr)
-        return 130
+        return 143 if term else 130
     except PaplError as exc:  # the running log keeps why the run failed
         handler.handle(log.makeRecord(log.name, logging.ERROR, __file__, 0, f"error: {exc}", None, None))
         raise
