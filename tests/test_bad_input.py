@@ -189,7 +189,7 @@ def test_config_is_a_folder(tmp_path, capsys):
 
 CAMERA_FILES = {
     "list.json": ("[1, 2]", "must hold an object"),
-    "broken.yaml": ("%YAML:1.0\ncamera_matrix: [1, 2\n  foo: : :\n", "not a readable OpenCV"),
+    "broken.yaml": ("%YAML:1.0\ncamera_matrix: [1, 2\n  foo: : :\n", "not a readable OpenCV YAML"),
     "width.json": (None, "camera field 'width' must be a number"),
     "fx.json": (None, "camera field 'fx' must be a number"),
     "fisheye.json": (None, "camera model 'fisheye' is not supported"),
