@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import tokenize
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -608,10 +609,13 @@ def _check_rows(shapes: dict[str, tuple]) -> None:
 def _npy_header(fh: Any) -> tuple[tuple, bool, np.dtype]:
     """(shape, fortran_order, dtype) of a .npy stream, left at the start of its data."""
     version = np.lib.format.read_magic(fh)
-    if version == (1, 0):
-        return np.lib.format.read_array_header_1_0(fh)
-    if version == (2, 0):
-        return np.lib.format.read_array_header_2_0(fh)
+    try:
+        if version == (1, 0):
+            return np.lib.format.read_array_header_1_0(fh)
+        if version == (2, 0):
+            return np.lib.format.read_array_header_2_0(fh)
+    except (SyntaxError, TypeError, OverflowError, tokenize.TokenError) as exc:  # numpy parses it as Python
+        raise ValueError(f"unreadable .npy header ({type(exc).__name__})") from exc
     raise ValueError(f"unsupported .npy version {version}")
 
 
