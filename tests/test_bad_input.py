@@ -450,3 +450,27 @@ def test_sigterm_stops_a_run_with_one_line(tmp_path):
     assert "Traceback" not in err
     assert "SIGTERM" in err.strip().splitlines()[-1]
     assert not (out / "map.papl").exists()
+
+
+def test_a_log_file_on_a_full_disk_is_dropped_quietly(tmp_path, capsys):
+    import logging
+
+    from papl_mapper.pipelines.logfile import close_log, file_log
+
+    handler = file_log(tmp_path / "log.txt", "w")
+
+    class Full(io.StringIO):
+        def write(self, s):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def flush(self):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    handler.stream = Full()
+    try:
+        for _ in range(3):
+            logging.getLogger("papl_mapper.test").warning("a record the disk cannot take")
+    finally:
+        close_log(handler)  # no OSError from the final flush either
+    err = capsys.readouterr().err
+    assert "Logging error" not in err and "Traceback" not in err
