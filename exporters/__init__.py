@@ -7,7 +7,15 @@ Every format is a pure function `(Map, ExportOptions) -> bytes` (a folder format
 text returns `{file name: bytes}`), listed in `REGISTRY` by suffix; `export` writes atomically.
 """
 
-from .registry import FOLDER_FORMATS, REGISTRY, export, suffix_of, supported_suffixes, write_atomic
+from .registry import (
+    FOLDER_FORMATS,
+    REGISTRY,
+    check_target,
+    export,
+    suffix_of,
+    supported_suffixes,
+    write_atomic,
+)
 from .scene import PARTS, ExportOptions, ExportScene, prepare
 
 __all__ = [
@@ -16,6 +24,7 @@ __all__ = [
     "REGISTRY",
     "ExportOptions",
     "ExportScene",
+    "check_target",
     "export",
     "prepare",
     "suffix_of",

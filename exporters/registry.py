@@ -12,13 +12,12 @@ import dataclasses
 import logging
 import os
 import re
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from papl_mapper.atomic import output_mode
-from papl_mapper.errors import ConfigError, InputError
+from papl_mapper.atomic import atomic_path, check_output_dir, output_target
+from papl_mapper.errors import ConfigError, InputError, OutputError
 from papl_mapper.map import Map
 
 from . import colmap, drawing, dxf, gltf, obj, ply, trajectory, tubes, usd
@@ -67,6 +66,17 @@ def suffix_of(path: str | os.PathLike, format: str | None = None) -> str:
 _VIEW_NAME = re.compile(r"(?:^|[._-])(?P<kind>plan|elevation)(?:-(?P<axis>\d+))?\.(?P<ext>dxf|svg)$")
 
 
+def check_target(path: str | os.PathLike, format: str | None = None) -> str:
+    """Refuse an export target before any work: unknown suffix, or a name the output-path policy
+    (`atomic.output_target`) would not write. Returns the format's registry key."""
+    key = suffix_of(path, format)
+    if key in FOLDER_FORMATS:
+        check_output_dir(path)
+    else:
+        output_target(path)
+    return key
+
+
 def view_options(path: str | os.PathLike, options: ExportOptions) -> ExportOptions:
     """`options` with `elevation_axis` from a file name such as elevation-2.svg (1 when it names none)."""
     view = _VIEW_NAME.search(Path(path).name.lower())
@@ -97,39 +107,20 @@ def export(
     key = suffix_of(path, format)
     data = REGISTRY[key](m, view_options(path, options))
     if isinstance(data, dict):
-        if path.exists() and not path.is_dir():
-            raise InputError(f"{path}: exists and is not a folder; the {key} export writes a folder of files")
+        check_output_dir(path)
         try:
             path.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise InputError(f"{path}: cannot create the output folder ({exc.strerror or exc})") from exc
+            raise OutputError(f"{path}: cannot create the output folder ({exc.strerror or exc})") from exc
         return [write_atomic(path / name, blob) for name, blob in data.items()]
     return [write_atomic(path, data)]
 
 
 def write_atomic(path: Path, data: bytes) -> Path:
-    """Write `data` to a temporary file beside `path`, flush it, then rename it over `path`."""
-    parent = path.parent if str(path.parent) else Path(".")
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder; give a file name")
-    if not parent.is_dir():
-        raise InputError(f"{path}: the folder {parent} does not exist; create it first")
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
-    except OSError as exc:
-        raise InputError(f"{path}: cannot write in {parent} ({exc.strerror or exc})") from exc
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, output_mode(path))
-        os.replace(tmp, path)
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise InputError(f"{path}: could not write the file ({exc.strerror or exc})") from exc
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write `data` to `path` through `atomic_path` (its output-path policy), flushed to disk."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
     log.debug("wrote %s (%s bytes)", path, f"{len(data):,}")
     return path

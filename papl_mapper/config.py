@@ -7,6 +7,8 @@ Each stage owns its config dataclass (with a docstring per field); pipelines nes
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 import tomllib
 import types
 import typing
@@ -66,11 +68,23 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
             raise ConfigError(f"config key {key!r}: expected {annotation.__name__}, got {value!r}") from exc
         if annotation is int and isinstance(value, float) and not value.is_integer():
             raise ConfigError(f"config key {key!r}: expected an integer, got {value!r}")
-        return out
+        return _check_number(out, key)
     if annotation is str:
         return str(value)
     if annotation is Path:
         return Path(value)
+    return value
+
+
+def _check_number(value: float, key: str) -> float:
+    """Every numeric setting is finite and non-negative (none has a negative default or meaning), and a
+    standard deviation (`*sigma*`) is positive: NaN, infinity or -1 would run on and give a garbage map."""
+    if not math.isfinite(value):
+        raise ConfigError(f"config key {key!r}: {value!r} is not a finite number")
+    if value < 0:
+        raise ConfigError(f"config key {key!r}: {value!r} is negative; every setting is positive or 0")
+    if "sigma" in key.rsplit(".", 1)[-1] and value == 0:
+        raise ConfigError(f"config key {key!r}: a standard deviation must be > 0, got {value!r}")
     return value
 
 
@@ -118,6 +132,10 @@ def load_config(cls: type[C], path: Path | None = None, overrides: list[str] = (
             data = tomllib.loads(path.read_text())
         except FileNotFoundError as exc:
             raise ConfigError(f"{path}: config file not found") from exc
+        except IsADirectoryError as exc:
+            raise ConfigError(f"{path}: is a folder; give a TOML config file") from exc
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read the config file ({exc.strerror or exc})") from exc
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
         config = _merge(config, data, "")
@@ -151,8 +169,8 @@ def dump_toml(data: dict[str, Any]) -> str:
             return repr(v)
         if isinstance(v, (list, tuple)):
             return "[" + ", ".join(scalar(x) for x in v) + "]"
-        s = str(v).replace("\\", "\\\\").replace('"', '\\"')
-        return f'"{s}"'
+        # JSON's escapes are TOML's (\n, \", \uXXXX): a newline in a value cannot start a new key
+        return json.dumps(str(v), ensure_ascii=False).replace("\x7f", "\\u007f")
 
     lines: list[str] = []
 

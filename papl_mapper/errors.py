@@ -38,6 +38,11 @@ class ConfigError(InputError):
     """A configuration file or --set override names an unknown key or holds a bad value."""
 
 
+class OutputError(InputError):
+    """An output cannot be written: its folder is missing or read-only, the disk is full, or the name
+    is taken by something that is not a regular file (a folder, FIFO, device or socket)."""
+
+
 class GeometryError(PaplError):
     """Degenerate geometry: a line parallel to the viewing ray, a zero-length segment, and the like."""
 

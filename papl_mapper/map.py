@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import tokenize
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -60,10 +61,55 @@ class Camera:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> Camera:
-        d = dict(d)
-        d["distortion"] = np.asarray(d.get("distortion", np.zeros(5)), dtype=np.float64)
-        return cls(**d)
+    def from_dict(cls, d: Any) -> Camera:
+        """A camera from `to_dict`'s schema; ValueError naming the first field that is missing, of the
+        wrong type, not finite or out of range (callers add the file name)."""
+        if not isinstance(d, dict):
+            raise ValueError(f"camera must be an object of fields, got {type(d).__name__}")
+        unknown = sorted(set(d) - set(_CAMERA_FIELDS) - {"model", "distortion"})
+        if unknown:
+            raise ValueError(f"unknown camera field(s) {unknown}")
+        values: dict[str, Any] = {}
+        for name, kind in _CAMERA_FIELDS.items():
+            if name not in d:
+                raise ValueError(f"camera field {name!r} is missing")
+            values[name] = _number(d[name], f"camera field {name!r}", integer=kind is int)
+        if (
+            values["width"] < 0
+            or values["height"] < 0
+            or values["width"] > 1 << 16
+            or values["height"] > 1 << 16
+        ):
+            raise ValueError(f"camera size {values['width']}x{values['height']} is out of range (0..65536)")
+        model = d.get("model", "pinhole")
+        if model != "pinhole":
+            raise ValueError(
+                f"camera model {model!r} is not supported: papl-mapper maps pinhole cameras with OpenCV "
+                "radial-tangential distortion (k1 k2 p1 p2 k3); undistort fisheye recordings first"
+            )
+        dist = d.get("distortion", [0.0] * 5)
+        if not isinstance(dist, (list, tuple, np.ndarray)) or len(dist) not in _DISTORTION_LENGTHS:
+            raise ValueError(f"camera field 'distortion' must be a list of {_DISTORTION_LENGTHS} numbers")
+        values["distortion"] = np.array([_number(x, "camera field 'distortion'") for x in dist], np.float64)
+        return cls(**values, model=model)
+
+
+_CAMERA_FIELDS = {"width": int, "height": int, "fx": float, "fy": float, "cx": float, "cy": float}
+_DISTORTION_LENGTHS = (0, 1, 2, 3, 4, 5, 8, 12, 14)  # OpenCV's lengths; shorter ones are padded
+
+
+def _number(value: Any, what: str, integer: bool = False) -> int | float:
+    """`value` as a finite float (or an exact int); ValueError naming `what` otherwise."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    if not ok:
+        raise ValueError(f"{what} must be a number, got {value!r:.40}")
+    if not np.isfinite(value):
+        raise ValueError(f"{what} is not finite ({value})")
+    if integer:
+        if float(value) != int(value):
+            raise ValueError(f"{what} must be an integer, got {value}")
+        return int(value)
+    return float(value)
 
 
 @dataclass
@@ -217,31 +263,18 @@ class Map:
             raise MapFormatError(f"{path}: is a folder, not a map file")
         try:
             with zipfile.ZipFile(path) as zf:
-                names = set(zf.namelist())
-                if "meta.json" not in names:
-                    raise MapFormatError(f"{path}: not a papl map (no meta.json inside)")
-                meta = json.loads(zf.read("meta.json"))
-                if meta.get("format") != FORMAT_NAME:
-                    raise MapFormatError(f"{path}: not a papl map (format {meta.get('format')!r})")
-                version = meta.get("version")
-                if version != FORMAT_VERSION:
-                    raise MapFormatError(
-                        f"{path}: map format version {version!r}, this papl-mapper reads version "
-                        f"{FORMAT_VERSION}; re-export it with a matching papl-mapper"
-                    )
-                arrays = {}
-                for name in _ARRAY_SPECS:
-                    member = f"{name}.npy"
-                    if member not in names:
-                        raise MapFormatError(f"{path}: array {name!r} is missing")
-                    with zf.open(member) as fh:
-                        arrays[name] = _read_npy(fh)
-        except (zipfile.BadZipFile, zlib.error, EOFError) as exc:
+                meta = _read_meta(zf)
+                arrays = _read_arrays(zf, path.stat().st_size)
+        except MapFormatError as exc:
+            raise MapFormatError(f"{path}: {exc}") from exc
+        except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as exc:
             raise MapFormatError(f"{path}: corrupt or truncated map file ({exc})") from exc
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise MapFormatError(f"{path}: corrupt metadata ({exc})") from exc
-        except ValueError as exc:
+        except (ValueError, SyntaxError) as exc:
             raise MapFormatError(f"{path}: corrupt array data ({exc})") from exc
+        except MemoryError as exc:
+            raise MapFormatError(f"{path}: an array does not fit in memory") from exc
         try:
             camera = Camera.from_dict(meta["camera"])
             m = cls(
@@ -249,11 +282,11 @@ class Map:
                 keyframes=Keyframes(*(arrays[f"keyframes.{f}"] for f in _FIELDS["keyframes"])),
                 points=Points(*(arrays[f"points.{f}"] for f in _FIELDS["points"])),
                 lines=Lines(*(arrays[f"lines.{f}"] for f in _FIELDS["lines"])),
-                axes=Axes(arrays["axes.directions"], int(meta.get("vertical_index", -1))),
-                metadata=meta.get("metadata", {}),
+                axes=Axes(arrays["axes.directions"], meta["vertical_index"]),
+                metadata=meta["metadata"],
             )
-        except (KeyError, TypeError) as exc:
-            raise MapFormatError(f"{path}: incomplete metadata ({exc})") from exc
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapFormatError(f"{path}: invalid metadata ({exc})") from exc
         try:
             m.validate()
         except MapFormatError as exc:
@@ -374,6 +407,16 @@ class Map:
         return out
 
 
+def map_file(path: str | os.PathLike) -> Path:
+    """The map file `path` names: itself, or a run folder's map.papl (MapFormatError when it has none)."""
+    path = Path(path)
+    if path.is_dir():
+        if not (path / "map.papl").is_file():
+            raise MapFormatError(f"{path}: a folder with no map.papl; give a .papl file or a run folder")
+        return path / "map.papl"
+    return path
+
+
 # ---- array table (the on-disk layout) ------------------------------------------------------
 
 _FIELDS = {
@@ -456,15 +499,128 @@ def _bad_ids(m: Map, name: str, bad: np.ndarray) -> list:
     return np.flatnonzero(bad)[:5].tolist()
 
 
-def _read_npy(fh: Any) -> np.ndarray:
-    """Read one .npy member straight into a fresh writable array (one copy, CRC checked by zip)."""
+MAX_META_BYTES = 64 << 20
+"""Largest meta.json read (the metadata holds the config and timings: kilobytes)."""
+MAX_INFLATION = 20
+"""Largest ratio of a member's declared size to its stored size: maps are written uncompressed, and
+real arrays deflate by under 3x; a higher ratio (a zip bomb) is refused before inflating."""
+
+
+def _member(zf: zipfile.ZipFile, name: str, archive_bytes: int) -> zipfile.ZipInfo:
+    """The zip entry `name`, refused when missing or when its declared size is not justified."""
+    try:
+        info = zf.getinfo(name)
+    except KeyError:
+        raise MapFormatError(f"{name} is missing") from None
+    if (
+        info.file_size > max(MAX_INFLATION * info.compress_size, 1 << 16)
+        or info.compress_size > archive_bytes
+    ):
+        raise MapFormatError(
+            f"{name} declares {info.file_size:,} bytes from {info.compress_size:,} stored "
+            f"(more than {MAX_INFLATION}x, or more than the file holds)"
+        )
+    return info
+
+
+def _read_meta(zf: zipfile.ZipFile) -> dict[str, Any]:
+    """meta.json, schema-checked: format, version, camera object, integer vertical_index, metadata object."""
+    if "meta.json" not in zf.namelist():
+        raise MapFormatError("not a papl map (no meta.json inside)")
+    info = _member(zf, "meta.json", 1 << 62)
+    if info.file_size > MAX_META_BYTES:
+        raise MapFormatError(f"meta.json is {info.file_size:,} bytes (at most {MAX_META_BYTES:,})")
+    meta = json.loads(zf.read(info))
+    if not isinstance(meta, dict):
+        raise MapFormatError(f"not a papl map (meta.json holds a {type(meta).__name__}, not an object)")
+    if meta.get("format") != FORMAT_NAME:
+        raise MapFormatError(f"not a papl map (format {meta.get('format')!r:.40})")
+    version = meta.get("version")
+    if version != FORMAT_VERSION or isinstance(version, bool):
+        raise MapFormatError(
+            f"map format version {version!r:.20}, this papl-mapper reads version "
+            f"{FORMAT_VERSION}; re-export it with a matching papl-mapper"
+        )
+    vi = meta.get("vertical_index", -1)
+    if not isinstance(vi, int) or isinstance(vi, bool):
+        raise MapFormatError(f"meta.json: vertical_index must be an integer, got {vi!r:.40}")
+    metadata = meta.get("metadata", {})
+    if not isinstance(metadata, dict):
+        raise MapFormatError(f"meta.json: metadata must be an object, got {type(metadata).__name__}")
+    if not isinstance(meta.get("camera"), dict):
+        raise MapFormatError(f"meta.json: camera must be an object, got {type(meta.get('camera')).__name__}")
+    return {**meta, "vertical_index": vi, "metadata": metadata}
+
+
+def _read_arrays(zf: zipfile.ZipFile, archive_bytes: int) -> dict[str, np.ndarray]:
+    """Every array of `_ARRAY_SPECS`. All headers are read and checked first (spec, byte count equal to
+    the entry's size, rows agreeing across a group), so nothing is allocated for a lying header."""
+    headers = {}
+    names = set(zf.namelist())
+    for name in _ARRAY_SPECS:
+        if f"{name}.npy" not in names:
+            raise MapFormatError(f"array {name!r} is missing")
+        info = _member(zf, f"{name}.npy", archive_bytes)
+        with zf.open(info) as fh:
+            shape, fortran, dtype = _npy_header(fh)
+            header_bytes = fh.tell()
+        _check_header(name, shape, dtype)
+        nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+        if header_bytes + nbytes != info.file_size:
+            raise MapFormatError(
+                f"array {name!r} declares shape {shape} ({nbytes:,} bytes) but its entry holds "
+                f"{info.file_size - header_bytes:,}"
+            )
+        headers[name] = (info, shape, fortran, dtype)
+    _check_rows({name: h[1] for name, h in headers.items()})
+    arrays = {}
+    for name, (info, shape, fortran, dtype) in headers.items():
+        with zf.open(info) as fh:
+            _npy_header(fh)
+            arrays[name] = _read_npy_data(fh, shape, fortran, dtype)
+    return arrays
+
+
+def _check_header(name: str, shape: tuple, dtype: np.dtype) -> None:
+    """The spec of `_ARRAY_SPECS` (dimensions, dtype kind) checked on a header, before any allocation."""
+    want, kind = _ARRAY_SPECS[name]
+    if dtype.hasobject or dtype.kind not in kind:
+        raise MapFormatError(f"array {name!r} has dtype {dtype}, expected kind {kind!r}")
+    if len(shape) != len(want) or any(
+        isinstance(w, int) and d != w for d, w in zip(shape, want, strict=True)
+    ):
+        raise MapFormatError(f"array {name!r} has shape {shape}, expected {want}")
+
+
+def _check_rows(shapes: dict[str, tuple]) -> None:
+    """Rows of a group's per-item arrays equal its ids'; obs pairs agree; a weight column per axis."""
+    for group, fields in _FIELDS.items():
+        n = shapes[f"{group}.ids"][0]
+        for f in fields:
+            if not f.startswith("obs_") and shapes[f"{group}.{f}"][0] != n:
+                raise MapFormatError(f"{group}.{f} has {shapes[f'{group}.{f}'][0]} rows, {group}.ids has {n}")
+    for group, obs in (("points", "obs_uv"), ("lines", "obs_xy")):
+        if shapes[f"{group}.obs_ids"][0] != shapes[f"{group}.{obs}"][0]:
+            raise MapFormatError(f"{group}.obs_ids and {group}.{obs} differ in length")
+    if shapes["lines.axis_weights"][1] != shapes["axes.directions"][0]:
+        raise MapFormatError("lines.axis_weights has a column count other than the number of axes")
+
+
+def _npy_header(fh: Any) -> tuple[tuple, bool, np.dtype]:
+    """(shape, fortran_order, dtype) of a .npy stream, left at the start of its data."""
     version = np.lib.format.read_magic(fh)
-    if version == (1, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
-    else:
-        shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
-    if dtype.hasobject:
-        raise ValueError("object arrays are not allowed")
+    try:
+        if version == (1, 0):
+            return np.lib.format.read_array_header_1_0(fh)
+        if version == (2, 0):
+            return np.lib.format.read_array_header_2_0(fh)
+    except (SyntaxError, TypeError, OverflowError, tokenize.TokenError) as exc:  # numpy parses it as Python
+        raise ValueError(f"unreadable .npy header ({type(exc).__name__})") from exc
+    raise ValueError(f"unsupported .npy version {version}")
+
+
+def _read_npy_data(fh: Any, shape: tuple, fortran: bool, dtype: np.dtype) -> np.ndarray:
+    """Read one .npy member's data straight into a fresh writable array (one copy, CRC checked by zip)."""
     arr = np.empty(shape[::-1] if fortran else shape, dtype=dtype)
     got = fh.readinto(memoryview(arr).cast("B")) if arr.size else 0
     if got != arr.nbytes:

@@ -50,6 +50,7 @@ from papl_mapper.pipelines.logfile import close_log, file_log
 from papl_mapper import __version__
 from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import InputError, PaplError
+from papl_mapper.outputs import add_outputs
 
 log = logging.getLogger(__name__)
 
@@ -490,6 +491,7 @@ def run_job(spec: dict[str, Any]) -> Row:
             extras = write_extras(
                 out, result.map, cfg, Path(job.gt) if job.gt else None, job.render, job.report
             )
+            add_outputs(out, [out / "log.txt", *(out / f for f in extras)])  # manifest.json
         row.update(_result_fields(result.summary, out))
         row["files"] = [*OUTPUT_FILES, "log.txt", *extras]
         row["status"] = "ok"

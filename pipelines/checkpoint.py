@@ -29,6 +29,7 @@ from papl_mapper.pipelines.config import RunConfig
 from papl_mapper import __version__
 from papl_mapper.axes.update import AxisState
 from papl_mapper.config import config_to_dict
+from papl_mapper.errors import OutputError
 from papl_mapper.map import Map, json_default
 from papl_mapper.mapping.incremental import Registration
 from papl_mapper.mapping.revisit import Revisit
@@ -181,6 +182,7 @@ class StageStore:
         """Write this stage's checkpoint atomically: `write(folder)` fills it, stage.json goes last.
 
         Later stages now recompute. A write that fails (disk full) is logged; the run goes on without it.
+        Checkpoints of other input or settings stay until `prune` (a run that fails keeps them).
         """
         self._recomputed = True
         if self.folder is None or stage not in self.keys:
@@ -197,17 +199,25 @@ class StageStore:
                 if final.exists():
                     shutil.rmtree(final)
                 os.rename(tmp, final)
-        except OSError as exc:
+        except (OSError, OutputError) as exc:
             log.warning("could not write the %s checkpoint in %s (%s)", TITLES[stage], self.folder, exc)
             return None
         size = sum(p.stat().st_size for p in final.iterdir())
         self.written[stage] = {"write_s": round(time.perf_counter() - t0, 4), "bytes": size}
-        for old in self.folder.glob(f"{stage}-*"):
-            if old != final and old.is_dir():
-                shutil.rmtree(old, ignore_errors=True)
         self.latest = stage
         log.debug("checkpoint: %s in %s (%.1f MiB)", TITLES[stage], final, size / 2**20)
         return final
+
+    def prune(self) -> None:
+        """Remove the checkpoints of other input or settings for every stage this run checkpointed:
+        called once the run's outputs are written, so a run that fails leaves the previous ones."""
+        if self.folder is None:
+            return
+        for stage in self.written:
+            final = self.path(stage)
+            for old in self.folder.glob(f"{stage}-*"):
+                if old != final and old.is_dir():
+                    shutil.rmtree(old, ignore_errors=True)
 
 
 @contextlib.contextmanager

@@ -16,6 +16,7 @@ import functools
 import hashlib
 import json
 import logging
+import math
 import time
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
@@ -29,11 +30,11 @@ from papl_mapper.pipelines.checkpoint import AxisInputs, StageStore
 from papl_mapper.pipelines.config import RunConfig
 
 from papl_mapper import __version__
-from papl_mapper.atomic import atomic_path
+from papl_mapper.atomic import atomic_path, check_output_dir
 from papl_mapper.backend import global_ba
 from papl_mapper.backend.calibration import check_focal
 from papl_mapper.config import config_to_dict, dump_toml
-from papl_mapper.errors import UnmappableError
+from papl_mapper.errors import InputError, OutputError, UnmappableError
 from papl_mapper.eval.trajectory import Trajectory, write_tum
 from papl_mapper.frontend import FrontendStats, process
 from papl_mapper.frontend.camera import camera_for_recording
@@ -60,6 +61,7 @@ from papl_mapper.mapping.structure import find_structure, line_weights
 from papl_mapper.mapping.track_completion import complete_tracks
 from papl_mapper.mapping.tracking import track_pnp
 from papl_mapper.mapping.windowed import WindowedRefiner
+from papl_mapper.outputs import begin_run
 from papl_mapper.scale import scale_from_config
 from papl_mapper.tracks import Tracks
 
@@ -143,11 +145,17 @@ def run(
     resume: bool = False,
     progress: ProgressFactory | None = None,
 ) -> RunResult:
-    """Map one recording into `out_dir`: map.papl, trajectory.tum, keyframes.tum, config.toml, summary."""
+    """Map one recording into `out_dir`: map.papl, trajectory.tum, keyframes.tum, config.toml, summary
+    (and manifest.json, see `papl_mapper.outputs`)."""
     cfg = config or RunConfig()
     progress = progress or _silent
     recording, out = Path(recording), Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_range(start_s, end_s)
+    check_output_dir(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from exc
     timer = _Timer()
     timer.current = "reading the input"
     store: StageStore | None = None
@@ -232,10 +240,20 @@ def run(
         }
         timer.current = "writing outputs"
         _write_outputs(out, m, traj, cfg, summary)
+        store.prune()
     except KeyboardInterrupt as exc:
         latest = store.latest if store is not None else None
         raise RunInterrupted(timer.current or "between stages", latest, out / ".checkpoint") from exc
     return RunResult(out, m, summary)
+
+
+def check_range(start_s: float | None, end_s: float | None) -> None:
+    """InputError unless the time range is finite, starts at or after 0 and ends after its start."""
+    for name, value in (("--start", start_s), ("--end", end_s)):
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise InputError(f"{name} {value}: give a finite time in seconds, 0 or more")
+    if start_s is not None and end_s is not None and end_s <= start_s:
+        raise InputError(f"--end {end_s} s is not after --start {start_s} s")
 
 
 def map_tracks(
@@ -547,6 +565,7 @@ def _write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary:
         _atomic_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
         write_tum(tmp["keyframes.tum"], Trajectory(m.keyframes.timestamp, m.keyframes.T_wc, "keyframes"))
         write_tum(tmp["trajectory.tum"], traj)
+    begin_run(out, [out / name for name in OUTPUT_FILES])
 
 
 def _write_unmappable(
@@ -576,6 +595,7 @@ def _write_unmappable(
         )
         _atomic_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
         _atomic_text(tmp["summary.json"], json.dumps(summary, indent=1, default=json_default))
+    begin_run(out, [out / name for name in names])
 
 
 def _atomic_text(path: Path, text: str) -> None:
@@ -583,4 +603,4 @@ def _atomic_text(path: Path, text: str) -> None:
         tmp.write_text(text)
 
 
-__all__ = ["RunConfig", "RunInterrupted", "RunResult", "frame_trajectory", "map_tracks", "run"]
+__all__ = ["RunConfig", "RunInterrupted", "RunResult", "check_range", "frame_trajectory", "map_tracks", "run"]

@@ -610,12 +610,12 @@ def test_unwritable_path(kmap: Map, tmp_path: Path, monkeypatch):
     ro.mkdir()
     ro.chmod(0o500)
     if os.geteuid() == 0:  # root writes anywhere: make the folder refuse the temporary file instead
-        import papl_mapper.exporters.registry as registry
+        import papl_mapper.atomic as atomic
 
         def refuse(*a, **k):
             raise PermissionError(13, "Permission denied")
 
-        monkeypatch.setattr(registry.tempfile, "mkstemp", refuse)
+        monkeypatch.setattr(atomic.tempfile, "mkstemp", refuse)
     with pytest.raises(InputError, match="cannot write in .*Permission denied"):
         export(kmap, ro / "m.ply")
     assert not list(ro.iterdir())

@@ -9,10 +9,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import math
+import signal
 import sys
+import threading
 
 from papl_mapper import __version__
-from papl_mapper.errors import PaplError
+from papl_mapper.errors import InputError, PaplError
 
 #: Sub-command modules, in the order `--help` lists them.
 COMMANDS = ("run", "batch", "scale", "info", "synth", "eval", "export", "render", "report", "view")
@@ -51,6 +54,14 @@ def _configure_logging(debug: bool, quiet: bool) -> None:
     )
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that a run stops the same clean way (outputs kept, checkpoints)."""
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -58,15 +69,52 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    if threading.current_thread() is not threading.main_thread():  # signals belong to the main thread
+        return _call(args)
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
+        return _call(args)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _call(args: argparse.Namespace) -> int:
+    """Run the command; every expected failure becomes one line on stderr and an exit code."""
+    try:
+        _check_numbers(args)
         return int(args.func(args) or 0)
     except PaplError as exc:
         if args.debug:
             raise
-        print(f"papl-map {args.command}: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+        return _fail(args, str(exc), exc.exit_code)
+    except Terminated:
+        print(f"papl-map {args.command}: terminated (SIGTERM)", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print(f"papl-map {args.command}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:
         return 0
+    except OSError as exc:  # a file the library did not anticipate (a disappearing disk)
+        if args.debug:
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        return _fail(args, f"{where}{exc.strerror or exc}", 2)
+    except MemoryError:
+        if args.debug:
+            raise
+        return _fail(args, "out of memory (an input is too large for this machine)", 2)
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """Every number on the command line is finite: argparse's float() takes 'nan' and 'inf'."""
+    for name, value in vars(args).items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise InputError(f"--{name.replace('_', '-')} {value}: give a finite number")
+
+
+def _fail(args: argparse.Namespace, message: str, code: int) -> int:
+    """Print the one error line (newlines in a message folded, so it stays one line)."""
+    line = " ".join(message.split())
+    print(f"papl-map {args.command}: error: {line}", file=sys.stderr)
+    return code

@@ -10,7 +10,15 @@ import argparse
 from pathlib import Path
 
 from papl_mapper.config import load_config
-from papl_mapper.map import Map
+from papl_mapper.errors import OutputError
+from papl_mapper.map import Map, map_file
+
+MULTI_POLICY = (
+    "Every OUT is checked before anything is written (known suffix, existing writable folder, and a "
+    "name that is absent, a regular file, or a link to one: the link's target is written); one bad OUT "
+    "writes nothing. A write that still fails (disk full) leaves that file as it was, the other outputs "
+    "are written, and each failure is reported."
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -18,6 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "export",
         help="export a map to PLY, glTF, USD, DXF, OBJ, tubes, TUM/KITTI, COLMAP",
         description=__doc__,
+        epilog=MULTI_POLICY,
     )
     p.add_argument("map", help="a .papl map file, or a run folder holding map.papl")
     p.add_argument("out", nargs="+", help="output files; each suffix picks the format")
@@ -51,15 +60,20 @@ def _overrides(args: argparse.Namespace) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from papl_mapper.exporters import ExportOptions, export, suffix_of
+    from papl_mapper.exporters import ExportOptions, check_target, export
 
     options = load_config(ExportOptions, args.config, _overrides(args))
     options.check()
-    for out in args.out:  # refuse a bad suffix before any work
-        suffix_of(out, args.format)
-    src = Path(args.map)
-    m = Map.load(src / "map.papl" if src.is_dir() else src)
+    for out in args.out:  # refuse a bad target before any work (MULTI_POLICY)
+        check_target(out, args.format)
+    m = Map.load(map_file(args.map))
+    failed = []
     for out in args.out:
-        for path in export(m, out, options, format=args.format):
-            print(path)
+        try:
+            for path in export(m, out, options, format=args.format):
+                print(path)
+        except OutputError as exc:
+            failed.append(str(exc))
+    if failed:
+        raise OutputError(f"{len(failed)} of {len(args.out)} outputs not written: {'; '.join(failed)}")
     return 0

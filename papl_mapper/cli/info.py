@@ -5,20 +5,20 @@ from __future__ import annotations
 import argparse
 import json
 
-from papl_mapper.map import Map
+from papl_mapper.map import Map, map_file
 from papl_mapper.palette import axis_names
 from papl_mapper.scale.estimate import units_note
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="summarise a map file", description=__doc__)
-    p.add_argument("map", help="a .papl map file")
+    p.add_argument("map", help="a .papl map file, or a run folder holding map.papl")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    m = Map.load(args.map)
+    m = Map.load(map_file(args.map))
     s = m.summary()
     s["units_note"] = units_note(m.metadata)
     s["scale"] = m.metadata.get("scale")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from papl_mapper.cli.progress import progress_bar
 from papl_mapper.config import load_config
-from papl_mapper.map import Map
+from papl_mapper.map import Map, map_file
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
 
     options = load_config(PreviewOptions, args.config, _overrides(args))
     src = Path(args.map)
-    m = Map.load(src / "map.papl" if src.is_dir() else src)
+    m = Map.load(map_file(src))
     if not options.title:
         options.title = src.resolve().name if src.is_dir() else src.stem
     with progress_bar("rendering") as cb:

@@ -9,9 +9,11 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from papl_mapper.atomic import atomic_path, check_output_dir
 from papl_mapper.cli.progress import progress_bar
 from papl_mapper.config import load_config
-from papl_mapper.errors import InputError
+from papl_mapper.errors import InputError, OutputError, PaplError
+from papl_mapper.outputs import add_outputs
 from papl_mapper.pipelines.logfile import close_log, file_log
 from papl_mapper.scale import check_config as check_scale_config
 
@@ -27,7 +29,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="map a recording: anchored line map, trajectories, summary",
         description=__doc__,
         epilog="Outputs in DIR: map.papl, trajectory.tum (every frame), keyframes.tum, config.toml, "
-        "summary.json, log.txt; with --export/--render/--report also those. Finished stages are "
+        "summary.json, log.txt; with --export/--render/--report also those; manifest.json lists them. "
+        "A rerun into DIR removes the files the previous run's manifest lists and the new run does not "
+        "write (nothing else). Options, paths and export targets are checked before the first frame. "
+        "Finished stages are "
         "checkpointed in DIR/.checkpoint: after Ctrl-C the outputs of a previous run are unchanged and "
         "--resume continues after the latest finished stage (with any settings: a stage reruns when "
         "its settings changed).",
@@ -98,11 +103,14 @@ def run(args: argparse.Namespace) -> int:
     if args.camera_height is not None:
         overrides.append(f"scale.camera_height={args.camera_height}")
     cfg = load_config(RunConfig, args.config, overrides)
-    check_scale_config(cfg.scale)  # a bad --marker or --camera-height fails before any work
+    _check_before_work(args, cfg)
     # the log of an unfinished run stays beside the checkpoints (a resumed run appends to it) and
     # replaces log.txt when the run's outputs are written, so log.txt always belongs to map.papl
     running_log = args.out / ".checkpoint" / "log.txt"
-    running_log.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        running_log.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{args.out}: cannot create the output folder ({exc.strerror or exc})") from exc
     handler = file_log(running_log, "a" if args.resume else "w")
     try:
         result = run_pipeline(
@@ -118,13 +126,20 @@ def run(args: argparse.Namespace) -> int:
             progress=progress_bar,
         )
     except RunInterrupted as exc:
-        message = f"papl-map run: {_interrupted(exc, args.out)}"
+        from papl_mapper.cli import Terminated
+
+        term = isinstance(exc.__cause__, Terminated)
+        message = f"papl-map run: {'SIGTERM: ' if term else ''}{_interrupted(exc, args.out)}"
         handler.handle(log.makeRecord(log.name, logging.ERROR, __file__, 0, message, None, None))
         print(message, file=sys.stderr)
-        return 130
+        return 143 if term else 130
+    except PaplError as exc:  # the running log keeps why the run failed
+        handler.handle(log.makeRecord(log.name, logging.ERROR, __file__, 0, f"error: {exc}", None, None))
+        raise
     finally:
         close_log(handler)
     os.replace(running_log, args.out / "log.txt")
+    add_outputs(args.out, [args.out / "log.txt"])
     handler = file_log(args.out / "log.txt", "a")  # exports, previews and the report log there too
     try:
         _finish(args, cfg, result)
@@ -138,6 +153,29 @@ def run(args: argparse.Namespace) -> int:
     finally:
         close_log(handler)
     return 0
+
+
+def _check_before_work(args: argparse.Namespace, cfg) -> None:
+    """Every option and path that can be checked before the first frame: the output folder, the time
+    range, the export formats and their targets, the ground-truth folder, the scale settings."""
+    from papl_mapper.exporters import check_target, suffix_of
+    from papl_mapper.pipelines.run import check_range
+
+    check_output_dir(args.out)
+    check_range(args.start, args.end)
+    if args.step < 1:
+        raise InputError(f"--step {args.step}: give 1 or more")
+    if args.max_size is not None and args.max_size < 16:
+        raise InputError(f"--max-size {args.max_size}: give 16 pixels or more")
+    for fmt in cfg.output.export:
+        target = args.out / f"map.{fmt.strip().lstrip('.')}"
+        if args.out.is_dir():
+            check_target(target)
+        else:
+            suffix_of(target)
+    if args.gt is not None and not args.gt.is_dir():
+        raise InputError(f"--gt {args.gt}: no such ground-truth folder")
+    check_scale_config(cfg.scale)  # a bad --marker or --camera-height fails before any work
 
 
 def _interrupted(exc: RunInterrupted, out: Path) -> str:
@@ -170,7 +208,9 @@ def _extras(args: argparse.Namespace, cfg, result) -> None:
     for fmt in cfg.output.export:
         from papl_mapper.exporters import export
 
-        for path in export(result.map, out / f"map.{fmt.strip().lstrip('.')}"):
+        paths = export(result.map, out / f"map.{fmt.strip().lstrip('.')}")
+        add_outputs(out, paths)
+        for path in paths:
             print(f"wrote {path}")
     if args.gt is not None:
         import json
@@ -178,16 +218,20 @@ def _extras(args: argparse.Namespace, cfg, result) -> None:
         from papl_mapper.eval import evaluate
 
         ev = evaluate(args.gt, result.map, out / "trajectory.tum")
-        (out / "eval.json").write_text(json.dumps(ev.to_dict(), indent=1))
+        with atomic_path(out / "eval.json") as tmp:
+            tmp.write_text(json.dumps(ev.to_dict(), indent=1))
+        add_outputs(out, [out / "eval.json"])
         print(ev.table())
     if args.render or cfg.output.render:
         from papl_mapper.gui.preview import render_views
 
         with progress_bar("previews") as cb:
             res = render_views(result.map, out / "previews", progress=cb)
+        add_outputs(out, res.paths + ([res.turntable] if res.turntable else []))
         print(f"wrote {len(res.paths)} previews into {out / 'previews'}")
     if args.report or cfg.output.report:
         from papl_mapper.gui.report import write_report
 
         path = write_report(out, out / "report.html", gt_dir=args.gt)
+        add_outputs(out, [path])
         print(f"wrote {path}")

@@ -1,7 +1,8 @@
 """Camera intrinsics from a file or a field-of-view guess, fitted to the recording, and undistortion.
 
-Formats read: our camera.json (`Camera.to_dict`), OpenCV YAML/JSON written by cv2.FileStorage
-(`camera_matrix`, `distortion_coefficients`, optional `image_width`/`image_height`), COLMAP
+Formats read: our camera.json (`Camera.to_dict`), OpenCV YAML/JSON/XML written by cv2.FileStorage
+(`camera_matrix`, `distortion_coefficients`, optional `image_width`/`image_height`; YAML and JSON
+are parsed in Python, only XML by OpenCV), COLMAP
 `cameras.txt` (PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV) and KITTI `calib.txt`
 (P0..P3 or P_rect_XX). Our pixel centres are integers; COLMAP puts the first pixel's centre at
 (0.5, 0.5), so its principal point is shifted by -0.5 on reading.
@@ -29,6 +30,7 @@ from papl_mapper.map import Camera
 log = logging.getLogger(__name__)
 
 DEFAULT_HFOV_DEG = 60.0
+MAX_CAMERA_FILE_BYTES = 1 << 20  # calibration files are a few hundred bytes
 ASPECT_TOLERANCE = 0.01
 
 
@@ -85,7 +87,10 @@ def fit_camera(camera: Camera, width: int, height: int, name: str = "camera") ->
 def _camera_from_K(K: np.ndarray, dist: np.ndarray | None, width: int, height: int, where: str) -> Camera:
     K = np.asarray(K, np.float64).reshape(3, 3)
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(f"{where}: camera matrix has non-positive or non-finite focal lengths: {K.tolist()}")
+        raise InputError(
+            f"{where}: camera matrix has non-positive or non-finite focal lengths "
+            f"(fx {K[0, 0]:g}, fy {K[1, 1]:g})"
+        )
     d = np.zeros(5) if dist is None else np.asarray(dist, np.float64).ravel()
     if not np.isfinite(d).all():
         raise InputError(f"{where}: distortion coefficients are not finite")
@@ -175,10 +180,19 @@ def read_kitti_calib(path: Path, key: str | None = None) -> Camera:
 
 
 def _read_opencv_storage(path: Path) -> Camera:
+    try:
+        return _read_opencv_nodes(path)
+    except (cv2.error, SystemError, ValueError, TypeError) as exc:  # OpenCV's parser raises these
+        cause = exc.__cause__ or exc.__context__ or exc  # SystemError wraps the cv2.error that says why
+        reason = (str(cause).strip().splitlines() or [type(cause).__name__])[-1][:160]
+        raise InputError(f"{path}: not a readable OpenCV XML camera file ({reason})") from exc
+
+
+def _read_opencv_nodes(path: Path) -> Camera:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     try:
         if not fs.isOpened():
-            raise InputError(f"{path}: not an OpenCV YAML/JSON file")
+            raise InputError(f"{path}: not an OpenCV XML file")
         K = None
         for name in ("camera_matrix", "cameraMatrix", "K", "intrinsics"):
             node = fs.getNode(name)
@@ -211,29 +225,72 @@ def _node_array(node: cv2.FileNode) -> np.ndarray | None:
     return None if mat is None else np.asarray(mat, np.float64)
 
 
-def _read_plain_json(path: Path, data: dict) -> Camera:
+def _read_mapping(path: Path, data: dict) -> Camera:
+    """camera.json (`fx` ...) or a mapping with a 3x3 `camera_matrix` (plain JSON, OpenCV JSON/YAML)."""
     if "fx" in data:
         try:
             keys = ("width", "height", "fx", "fy", "cx", "cy", "distortion", "model")
             cam = Camera.from_dict({k: data[k] for k in keys if k in data})
         except (TypeError, ValueError) as exc:
-            raise InputError(f"{path}: not a valid camera.json ({exc})") from exc
+            raise InputError(f"{path}: not a valid camera.json: {exc}") from exc
         return _camera_from_K(cam.K, cam.distortion, cam.width, cam.height, str(path))
-    K = data.get("camera_matrix", data.get("K"))
-    if isinstance(K, dict) and "data" in K:
-        K = K["data"]
+    K = _first(data, ("camera_matrix", "cameraMatrix", "K", "intrinsics"))
     if K is None:
-        raise InputError(f"{path}: neither 'fx' nor 'camera_matrix' in this JSON camera file")
-    dist = data.get("distortion_coefficients", data.get("dist_coeffs", data.get("distortion")))
-    if isinstance(dist, dict) and "data" in dist:
-        dist = dist["data"]
-    w = int(data.get("image_width", data.get("width", 0)))
-    h = int(data.get("image_height", data.get("height", 0)))
+        raise InputError(f"{path}: neither 'fx' nor 'camera_matrix' in this camera file")
+    dist = _first(data, ("distortion_coefficients", "dist_coeffs", "distCoeffs", "D", "distortion"))
     try:
-        dist_arr = None if dist is None else np.array(dist, float)
-        return _camera_from_K(np.array(K, np.float64), dist_arr, w, h, str(path))
-    except ValueError as exc:
-        raise InputError(f"{path}: camera_matrix is not 3x3 ({exc})") from exc
+        w = _size(_first(data, ("image_width", "width")) or 0)
+        h = _size(_first(data, ("image_height", "height")) or 0)
+        dist_arr = None if dist is None else np.array(dist, float).ravel()
+        K_arr = np.array(K, np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{path}: not a valid camera file ({exc})") from exc
+    if K_arr.size != 9:
+        raise InputError(f"{path}: camera_matrix is not 3x3 (it has {K_arr.size} numbers)")
+    return _camera_from_K(K_arr, dist_arr, w, h, str(path))
+
+
+def _first(data: dict, names: tuple[str, ...]) -> object:
+    """The value of the first of `names` in `data` (an opencv-matrix mapping as its `data` list)."""
+    for name in names:
+        if name in data:
+            value = data[name]
+            return value["data"] if isinstance(value, dict) and "data" in value else value
+    return None
+
+
+def _read_opencv_yaml(path: Path, text: str) -> Camera:
+    """An OpenCV FileStorage YAML file, parsed by PyYAML's safe loader rather than OpenCV's parser:
+    OpenCV 5.0's parser corrupted the heap on mutated files (tests/test_fuzz_inputs.py found it)."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        """Safe YAML plus OpenCV's `!!opencv-matrix` tags, read as plain mappings."""
+
+    for tag in ("opencv-matrix", "opencv-nd-matrix"):
+        Loader.add_constructor(
+            f"tag:yaml.org,2002:{tag}", lambda loader, node: loader.construct_mapping(node)
+        )
+    lines = text.splitlines()
+    if lines and lines[0].startswith("%YAML"):  # OpenCV writes "%YAML:1.0", which YAML itself refuses
+        lines = lines[1:]
+    try:
+        data = yaml.load("\n".join(lines), Loader)  # noqa: S506 - a SafeLoader subclass
+    except (yaml.YAMLError, ValueError, TypeError, RecursionError) as exc:
+        reason = " ".join(str(exc).split())[:160]
+        raise InputError(f"{path}: not a readable OpenCV YAML camera file ({reason})") from exc
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: an OpenCV YAML camera file must hold a mapping, not {type(data).__name__}")
+    return _read_mapping(path, data)
+
+
+def _size(value: object) -> int:
+    """An image width or height from a camera file: a whole number in 0..65536, else ValueError."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
+        raise ValueError(f"image size {value!r:.40} is not a whole number")
+    if not 0 <= value <= 1 << 16:
+        raise ValueError(f"image size {value} is out of range (0..65536)")
+    return int(value)
 
 
 def read_camera_file(path: str | Path) -> Camera:
@@ -241,20 +298,26 @@ def read_camera_file(path: str | Path) -> Camera:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: camera file not found")
+    if path.stat().st_size > MAX_CAMERA_FILE_BYTES:
+        raise InputError(f"{path}: {path.stat().st_size:,} bytes is too large for a camera file")
     suffix = path.suffix.lower()
     try:
         text = path.read_text()
     except UnicodeDecodeError as exc:
         raise InputError(f"{path}: not a text camera file") from exc
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the camera file ({exc.strerror or exc})") from exc
     if suffix == ".json" or text.lstrip().startswith("{"):
         try:
             data = json.loads(text)
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, RecursionError) as exc:
             raise InputError(f"{path}: not valid JSON ({exc})") from exc
-        if isinstance(data, dict) and ("fx" in data or not _is_opencv_json(data)):
-            return _read_plain_json(path, data)
-        return _read_opencv_storage(path)
-    if suffix in (".yml", ".yaml", ".xml") or text.lstrip().startswith("%YAML"):
+        if not isinstance(data, dict):
+            raise InputError(f"{path}: a JSON camera file must hold an object, not a {type(data).__name__}")
+        return _read_mapping(path, data)
+    if suffix in (".yml", ".yaml") or text.lstrip().startswith("%YAML"):
+        return _read_opencv_yaml(path, text)
+    if suffix == ".xml":
         return _read_opencv_storage(path)
     stripped = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if stripped and any(ln.split(":")[0].strip().startswith("P") and ":" in ln for ln in stripped):
@@ -265,11 +328,6 @@ def read_camera_file(path: str | Path) -> Camera:
         f"{path}: unrecognised camera file; use camera.json, OpenCV YAML/JSON, COLMAP cameras.txt "
         "or KITTI calib.txt"
     )
-
-
-def _is_opencv_json(data: dict) -> bool:
-    K = data.get("camera_matrix")
-    return isinstance(K, dict) and K.get("type_id") == "opencv-matrix"
 
 
 def camera_for_recording(
@@ -288,9 +346,22 @@ def camera_for_recording(
     cam = read_camera_file(path)
     original = (cam.width, cam.height)
     fitted = fit_camera(cam, width, height, str(path))
+    check_intrinsics(fitted, str(path))
     check_distortion(fitted, str(path))
     scaled = original if original != (width, height) and cam.width > 0 else None
     return CameraSource(fitted, str(path), guessed=False, scaled_from=scaled)
+
+
+def check_intrinsics(camera: Camera, name: str) -> None:
+    """InputError when the focal lengths give a field of view outside 1..179 deg (the range `guess_camera`
+    accepts): a wrong file, or one for another image size."""
+    for f, size, axis in ((camera.fx, camera.width, "horizontal"), (camera.fy, camera.height, "vertical")):
+        fov = math.degrees(2 * math.atan2(size / 2.0, abs(f)))
+        if not 1.0 <= fov < 179.0:
+            raise InputError(
+                f"{name}: implausible focal length {f:g} px for {camera.width}x{camera.height} images "
+                f"({axis} field of view {fov:.4g} deg, expected 1..179); check the camera file"
+            )
 
 
 MAX_CORNER_STRETCH = 2.5
@@ -312,8 +383,9 @@ def check_distortion(camera: Camera, name: str) -> None:
     )
     rc = float(np.max(np.linalg.norm((corners - [camera.cx, camera.cy]) / [camera.fx, camera.fy], axis=1)))
     r = np.linspace(0.0, MAX_CORNER_STRETCH * rc, 4001)
-    rd = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
-    rising = np.diff(rd) > 0
+    with np.errstate(over="ignore", invalid="ignore"):  # absurd coefficients overflow: then not rising
+        rd = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
+        rising = np.diff(rd) > 0
     branch = len(rising) if rising.all() else int(np.argmin(rising))  # monotonic part from the centre
     if branch == 0 or rd[branch] < rc:
         raise InputError(
