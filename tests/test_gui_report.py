@@ -256,10 +256,6 @@ def _gt_folder(tmp_path: Path, m: Map) -> Path:
 
 
 def test_ground_truth_section_with_eval(tmp_path):
-    try:
-        from papl_mapper.eval import evaluate  # noqa: F401
-    except ImportError as exc:
-        pytest.skip(f"papl_mapper.eval.evaluate is not there yet (written concurrently): {exc}")
     m = building_map()
     run = _run_folder(tmp_path, m)
     gt = _gt_folder(tmp_path, m)
