@@ -95,6 +95,9 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> Any:
     for key, value in data.items():
         full = f"{prefix}{key}"
         if key not in fields:
+            renamed = getattr(type(obj), "RENAMED", {}).get(key)
+            if renamed:
+                raise ConfigError(f"config key {full!r} is now {renamed!r}")
             raise ConfigError(f"unknown config key {full!r}; known: {sorted(fields)}")
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):

@@ -7,7 +7,7 @@ of overrides applied before the user's own `--config` file and `--set` overrides
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 from papl_mapper.axes import AxesConfig
 from papl_mapper.backend import BAConfig
@@ -48,6 +48,9 @@ class OutputConfig:
 class RunConfig:
     """Everything one run depends on; written beside the outputs as config.toml."""
 
+    RENAMED: ClassVar[dict[str, str]] = {"local_ba_every": "mapping.refine_every"}
+    """Keys of older config files and where their setting lives now (named in the error)."""
+
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     """Decoding, points, lines, vanishing points, keyframes."""
     mapping: IncrementalConfig = field(default_factory=IncrementalConfig)
@@ -76,8 +79,6 @@ class RunConfig:
     """Metric scale after mapping (markers, camera height); none by default: arbitrary units."""
     seed: int = 0
     """Seed for every random choice (RANSAC), so the same input gives the same map."""
-    local_ba_every: int = 10
-    """Run a windowed BA over the newest keyframes after this many registrations (0: never)."""
     local_ba_window: int = 15
     """Keyframes optimised by each windowed BA."""
     axis_min_support_fraction: float = 0.03

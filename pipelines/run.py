@@ -274,13 +274,14 @@ def map_tracks(
     store = store or StageStore.off()
     cfg.mapping.pnp.seed = cfg.seed
 
-    cfg.mapping.refine_every = cfg.local_ba_every
     store.chain(cfg)
     loaded = store.load("registration", functools.partial(ckpt.read_registration, tracks=tracks))
     if loaded is None:
         with timer.stage("registration"), progress("keyframes") as cb:
             refine = WindowedRefiner(tracks, cfg.ba, cfg.local_ba_window, cfg.max_point_error_px)
-            reg = register_keyframes(tracks, cfg.mapping, cb, refine if cfg.local_ba_every > 0 else None)
+            reg = register_keyframes(
+                tracks, cfg.mapping, cb, refine if cfg.mapping.refine_every > 0 else None
+            )
         _save(store, timer, "registration", ckpt.write_registration, reg=reg, tracks=tracks)
     else:
         reg, point_track = loaded

@@ -61,3 +61,14 @@ def test_bad_file(tmp_path):
         load_config(Outer, f)
     with pytest.raises(ConfigError, match="not found"):
         load_config(Outer, tmp_path / "none.toml")
+
+
+def test_run_config_has_one_source_for_the_windowed_ba_interval():
+    """`mapping.refine_every` is the setting (run time rewrote it from `local_ba_every` before, so a
+    --set of it was silently lost); the old key names the new one."""
+    from papl_mapper.pipelines.config import RunConfig
+
+    cfg = load_config(RunConfig, None, ["mapping.refine_every=5"])
+    assert cfg.mapping.refine_every == 5 and not hasattr(cfg, "local_ba_every")
+    with pytest.raises(ConfigError, match="'local_ba_every' is now 'mapping.refine_every'"):
+        load_config(RunConfig, None, ["local_ba_every=5"])

@@ -64,7 +64,7 @@ class IncrementalConfig:
     keyframe_min_gap: int = 1
     """...if at least this many frames have passed since the last keyframe."""
     refine_every: int = 10
-    """New keyframes between two calls of the refinement callback (windowed BA)."""
+    """New keyframes between two calls of the refinement callback (the windowed BA; 0: never)."""
     max_lost_frames: int = 5
     """Frames in a row that fail to register before tracking counts as lost and a new segment starts."""
     merge_min_points: int = 12
