@@ -106,4 +106,5 @@ PRESETS: dict[str, list[str]] = {
     "orthonormal-lines": ["variant.lines=orthonormal"],
     "no-revisit": ["mapping.revisit.enabled=false"],
     "paper-anchors": ["ba.anchor_offset=false"],
+    "no-final-completion": ["completion.after_full_ba=false"],
 }

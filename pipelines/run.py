@@ -309,6 +309,12 @@ def map_tracks(
         m, axis_inputs = _lines_and_axes(tracks, m, up is not None, cfg, timer)
         with timer.stage("ba_full"):
             m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines)")
+        if cfg.completion.enabled and cfg.completion.after_full_ba:
+            # as after the points BA: the better poses confirm more observations; the BA after it also
+            # re-applies the error limits to the lines the first full BA placed
+            stats["completion_full_ba"] = _complete(tracks, m, cfg, timer)
+            with timer.stage("ba_full"):
+                m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines, completed tracks)")
         _save(
             store,
             timer,
@@ -389,20 +395,26 @@ def _points_ba(
     with timer.stage("ba_points"):
         m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points)")
     if cfg.completion.enabled:
-        with timer.stage("completion"):
-            points_w, done = complete_tracks(tracks, m, cfg.completion)
-            m = assemble_map(tracks, _poses(m), points_w, LineEstimates.empty(), metadata=m.metadata)
-        log.info(
-            "tracks: %d merged, %d completed (%d keyframe observations), %d retriangulated",
-            done.merged,
-            done.completed,
-            done.observations_added,
-            done.retriangulated,
-        )
-        stats["completion"] = done.as_dict()
+        stats["completion"] = _complete(tracks, m, cfg, timer)
         with timer.stage("ba_points"):
             m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points, completed tracks)")
     return m, stats
+
+
+def _complete(tracks: Tracks, m: Map, cfg: RunConfig, timer: _Timer) -> dict[str, int]:
+    """Track completion, merging and retriangulation on the BA poses of `m`; its points are replaced
+    in place (keyframes and lines kept) for the BA that follows. Returns the statistics."""
+    with timer.stage("completion"):
+        points_w, done = complete_tracks(tracks, m, cfg.completion)
+        m.points = assemble_map(tracks, _poses(m), points_w, LineEstimates.empty()).points
+    log.info(
+        "tracks: %d merged, %d completed (%d keyframe observations), %d retriangulated",
+        done.merged,
+        done.completed,
+        done.observations_added,
+        done.retriangulated,
+    )
+    return done.as_dict()
 
 
 def _lines_and_axes(

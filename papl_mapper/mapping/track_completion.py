@@ -31,6 +31,9 @@ class CompletionConfig:
 
     enabled: bool = True
     """Complete, merge and retriangulate point tracks after the points-only BA (then BA again)."""
+    after_full_ba: bool = True
+    """...and after the full BA over points and lines, then the full BA again (`--preset
+    no-final-completion` turns it off: benchmarks/results/real.json and accuracy_final_completion.json)."""
     search_radius_px: float = 3.0
     """A tracked corner joins a map point only this close to where the BA pose projects the point."""
     max_error_px: float = 2.0
