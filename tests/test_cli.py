@@ -34,3 +34,19 @@ def test_bad_map_is_one_line_and_nonzero(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0
     assert "bad.papl" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_run_help_names_every_preset():
+    """The preset list in `run --help` is written out (the parser does not import the pipeline)."""
+    import argparse
+
+    from papl_mapper.pipelines.config import PRESETS
+
+    from papl_mapper.cli import run as run_cli
+
+    parser = argparse.ArgumentParser()
+    run_cli.add_parser(parser.add_subparsers())
+    # argparse wraps long help at hyphens: compare without whitespace
+    help_text = "".join(parser._subparsers._group_actions[0].choices["run"].format_help().split())
+    for name in PRESETS:
+        assert name in help_text, name

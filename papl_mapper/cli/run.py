@@ -48,8 +48,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--preset",
         default="full",
-        help="ablation preset: full, hard-association, no-axis-management, "
-        "no-vertical-prior, no-vp-refinement, points-only, orthonormal-lines, no-revisit",
+        help="ablation preset: full, hard-association, no-axis-management, no-vertical-prior, "
+        "no-vp-refinement, points-only, orthonormal-lines, no-revisit, paper-anchors, no-final-completion",
     )
     p.add_argument("--config", type=Path, help="TOML file with RunConfig fields")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
