@@ -166,9 +166,9 @@ def verify_pair(
         return np.zeros(len(uv_a), bool), None
     cv2.setRNGSeed(seed)
     E, mask = cv2.findEssentialMat(uv_a, uv_b, K, cv2.USAC_FAST, 0.999, threshold_px)
-    if E is None or mask is None or E.shape != (3, 3):
+    if E is None or mask is None or E.shape[0] < 3:
         return np.zeros(len(uv_a), bool), None
-    return mask.ravel().astype(bool), E
+    return mask.ravel().astype(bool), E[:3]  # the first of several stacked solutions, the mask's
 
 
 def candidate_pairs(keyframes: np.ndarray, weak: np.ndarray, cfg: FeatureConfig) -> list[tuple[int, int]]:
@@ -189,7 +189,7 @@ def candidate_pairs(keyframes: np.ndarray, weak: np.ndarray, cfg: FeatureConfig)
     pairs = []
     for i in range(n):
         for j in range(i + 1, n if exhaustive else min(n, i + cfg.window + 1)):
-            if exhaustive or (breaks[j] > breaks[i] and j - i <= cfg.window):
+            if exhaustive or breaks[j] > breaks[i]:
                 pairs.append((i, j))
     return pairs
 
@@ -287,8 +287,9 @@ def feature_tracks(
     weak = weak_links(point_frame, point_track, keyframes, cfg.weak_link_tracks)
     pairs = candidate_pairs(keyframes, weak, cfg)
 
-    def link(pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
-        """Verified matches of one keyframe pair as node rows (M, 2) and their distances, or None."""
+    def link(pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, tuple[int, int, np.ndarray]] | None:
+        """Verified matches of one keyframe pair as node rows (M, 2), their distances and the pair's
+        geometry (frame rows and essential matrix), or None."""
         sa, sb = (slice(starts[k], ends[k]) for k in pair)
         m, dist = match_pair(_unit(node_sift[sa]), _unit(node_sift[sb]), cfg.ratio)
         if len(m) < cfg.min_inliers:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from papl_mapper.frontend.descriptors import match_descriptors
+from papl_mapper.frontend.descriptors import hamming_pairs, match_descriptors
 from papl_mapper.frontend.features import chain_tracks
 from papl_mapper.frontend.lines import LineConfig
 
@@ -96,8 +96,7 @@ def link_line_tracks(
         m = match_descriptors(desc_of[ra], desc_of[rb], lbd.lbd_max_hamming, lbd.lbd_ratio, allowed)
         if len(m):
             edges.append(np.column_stack([ra[m[:, 0]], rb[m[:, 1]]]))
-            a, b = desc_of[ra[m[:, 0]]], desc_of[rb[m[:, 1]]]
-            costs.append(np.unpackbits(a ^ b, axis=1).sum(axis=1))
+            costs.append(hamming_pairs(desc_of, desc_of, ra[m[:, 0]], rb[m[:, 1]]))
     if not edges:
         return line_track, 0
     rows = np.concatenate(edges)

@@ -248,7 +248,7 @@ class _Run:
         self.sift = SiftDetector(config.features) if config.features.enabled else None
         self.feats = KeyframeFeatures()
         self.features_pool = features_pool
-        self.feature_jobs: list[tuple[int, Any]] = []  # (frame row, Future or detection) per keyframe
+        self.feature_jobs: list[tuple[int, Future]] = []  # (frame row, its SIFT detection) per keyframe
         # the last keyframes (row, point ids, image, described) and how many more to describe
         self._recent_kf: deque[list] = deque(maxlen=max(1, config.features.window))
         self._describe_next = 0
@@ -334,14 +334,18 @@ class _Run:
             return
         for kf in recent if weak else (recent[-1],):
             if not kf[3]:
-                job = self.features_pool.submit(self.sift.detect, kf[2]) if self.features_pool else None
-                self.feature_jobs.append((kf[0], job if job is not None else self.sift.detect(kf[2])))
+                if self.features_pool is not None:
+                    job = self.features_pool.submit(self.sift.detect, kf[2])
+                else:
+                    job = Future()
+                    job.set_result(self.sift.detect(kf[2]))
+                self.feature_jobs.append((kf[0], job))
                 kf[3] = True
 
     def _collect_features(self) -> None:
         """The keyframes' SIFT keypoints, detected in the worker thread while later frames were tracked."""
         for row, job in self.feature_jobs:
-            uv, sift, desc = job.result() if isinstance(job, Future) else job
+            uv, sift, desc = job.result()
             self.feats.add(row, self.und.points(uv), sift, desc)
         self.feature_jobs = []
 
