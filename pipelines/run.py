@@ -54,6 +54,7 @@ from papl_mapper.mapping.assemble import (
 )
 from papl_mapper.mapping.culling import CullStats, cull_keyframes
 from papl_mapper.mapping.incremental import Registration, register_keyframes
+from papl_mapper.mapping.line_completion import complete_lines
 from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
 from papl_mapper.mapping.pose_refine import FrameRefiner
 from papl_mapper.mapping.rotation_only import fill_rotation_only
@@ -313,6 +314,8 @@ def map_tracks(
             # as after the points BA: the better poses confirm more observations; the BA after it also
             # re-applies the error limits to the lines the first full BA placed
             stats["completion_full_ba"] = _complete(tracks, m, cfg, timer)
+            if cfg.completion.lines:
+                stats["line_completion"] = _complete_lines(tracks, m, axis_inputs, cfg, timer)
             with timer.stage("ba_full"):
                 m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines, completed tracks)")
         _save(
@@ -323,6 +326,7 @@ def map_tracks(
             m=m,
             point_track=tracks.point_track,
             axis_inputs=axis_inputs,
+            line_track=tracks.line_track,
             stats=stats,
         )
     if axis_inputs is not None and cfg.variant.axis_management:
@@ -413,6 +417,38 @@ def _complete(tracks: Tracks, m: Map, cfg: RunConfig, timer: _Timer) -> dict[str
         done.completed,
         done.observations_added,
         done.retriangulated,
+    )
+    return done.as_dict()
+
+
+def _complete_lines(
+    tracks: Tracks, m: Map, axis_inputs: AxisInputs | None, cfg: RunConfig, timer: _Timer
+) -> dict[str, int]:
+    """Segment tracks merged and completed into the map lines; a merged line's vanishing-direction
+    observations then count for the line it joined when the axis update re-associates the lines."""
+    c = cfg.completion
+    with timer.stage("completion"):
+        done, joined = complete_lines(
+            tracks,
+            m,
+            c.line_max_error_px,
+            c.line_min_overlap,
+            c.line_max_hamming,
+            c.min_views_without_descriptor,
+        )
+        if axis_inputs is not None and joined:
+            lt = axis_inputs.line_track
+            src = np.array([t for t in joined if t in set(lt.tolist())], np.int64)
+            if len(src):
+                dst = np.searchsorted(lt, [joined[int(t)] for t in src])
+                remap = np.arange(len(lt))
+                remap[np.searchsorted(lt, src)] = dst
+                axis_inputs.obs_line = remap[axis_inputs.obs_line]
+    log.info(
+        "line tracks: %d merged, %d completed (%d keyframe observations)",
+        done.merged,
+        done.completed,
+        done.observations_added,
     )
     return done.as_dict()
 
