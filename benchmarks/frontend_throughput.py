@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 from machine import machine_info
 
-from papl_mapper.eval.trajectory import read_tum
 from papl_mapper.frontend import (
     FrontendConfig,
     FrontendStats,
@@ -46,6 +45,7 @@ from papl_mapper.frontend.lines import LineConfig, SegmentDetector, match_keyfra
 from papl_mapper.synth.generate import SynthConfig, generate
 from papl_mapper.synth.project import visible_segments
 from papl_mapper.synth.scenes import make_scene
+from papl_mapper.trajectory_io import read_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL_FPS = 30.0

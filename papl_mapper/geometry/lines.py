@@ -477,8 +477,14 @@ def line_distance(L_a: np.ndarray, L_b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(A - sign * B, axis=-1)
 
 
-def line_angle_deg(L_a: np.ndarray, L_b: np.ndarray) -> np.ndarray:
-    """Unsigned angle between line directions, degrees."""
-    a = L_a[..., 3:] / np.linalg.norm(L_a[..., 3:], axis=-1, keepdims=True)
-    b = L_b[..., 3:] / np.linalg.norm(L_b[..., 3:], axis=-1, keepdims=True)
-    return np.degrees(np.arccos(np.clip(np.abs(np.sum(a * b, -1)), 0.0, 1.0)))
+def line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles in degrees (0..90) between undirected directions a (..., 3) and b (..., 3), broadcasting.
+
+    Any lengths (a Pluecker line's direction is `L[..., 3:]`); atan2 of |a x b| and |a . b| stays
+    accurate near 0 and 90 degrees, where arccos of the cosine loses half the digits.
+    """
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    c = np.abs(np.sum(a * b, axis=-1))
+    s = np.linalg.norm(np.cross(a, b), axis=-1)
+    return np.degrees(np.arctan2(s, c))
