@@ -28,8 +28,9 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from papl_mapper import geometry as geo  # noqa: E402
 from papl_mapper.backend import BAConfig, global_ba  # noqa: E402
-from papl_mapper.backend.synthetic import SceneSpec, align_sim3, errors, make_scene, perturb  # noqa: E402
+from papl_mapper.backend.synthetic import SceneSpec, errors, make_scene, perturb  # noqa: E402
 from papl_mapper.geometry.lines import line_parallax_deg  # noqa: E402
+from papl_mapper.geometry.similarity import umeyama  # noqa: E402
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -380,8 +381,8 @@ def _per_line(est: Map, truth: Map) -> np.ndarray:
     """Per-line Error_l after the same similarity alignment as `errors` (cameras and points)."""
     src = np.concatenate([est.keyframes.T_wc[:, :3, 3], est.points.xyz])
     dst = np.concatenate([truth.keyframes.T_wc[:, :3, 3], truth.points.xyz])
-    s, R_, t = align_sim3(src, dst)
-    e = est.lines.endpoints_w * s @ R_.T + t
+    sim = umeyama(src, dst)
+    e = sim.apply(est.lines.endpoints_w)
     Le = geo.plucker_from_endpoints(e[:, 0], e[:, 1])
     Lt = geo.plucker_from_endpoints(truth.lines.endpoints_w[:, 0], truth.lines.endpoints_w[:, 1])
     return geo.line_distance(Le, Lt)
