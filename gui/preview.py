@@ -257,13 +257,9 @@ def _robust_diagonal(m: Map) -> float:
 
 def _frusta(m: Map, depth: float) -> np.ndarray:
     """(K, 5, 3) apex and the four image corners at `depth` in front of each keyframe."""
-    c = m.camera
-    u = np.array([0.0, c.width - 1, c.width - 1, 0.0])
-    v = np.array([0.0, 0.0, c.height - 1, c.height - 1])
-    rays_c = np.stack([(u - c.cx) / c.fx, (v - c.cy) / c.fy, np.ones(4)], axis=1) * depth  # (4, 3)
-    R, t = m.keyframes.T_wc[:, :3, :3], m.keyframes.T_wc[:, :3, 3]
-    corners_w = np.einsum("kij,cj->kci", R, rays_c) + t[:, None]  # (K, 4, 3)
-    return np.concatenate([t[:, None], corners_w], axis=1)
+    from papl_mapper.exporters.scene import frustum_corners  # the exports' and the viewer's frustum
+
+    return np.concatenate([m.keyframes.T_wc[:, None, :3, 3], frustum_corners(m, depth)], axis=1)
 
 
 def _robust(x: np.ndarray, q: float) -> np.ndarray:
