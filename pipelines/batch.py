@@ -48,7 +48,7 @@ from papl_mapper.pipelines.batch_inputs import Recording, assign_names, collect
 from papl_mapper.pipelines.logfile import close_log, file_log
 
 from papl_mapper import __version__
-from papl_mapper.atomic import atomic_path
+from papl_mapper.atomic import atomic_path, move_into_place
 from papl_mapper.errors import InputError, PaplError
 from papl_mapper.outputs import add_outputs
 
@@ -485,7 +485,7 @@ def run_job(spec: dict[str, Any]) -> Row:
                 resume=job.resume,
             )
             close_log(handler)
-            os.replace(running_log, out / "log.txt")
+            move_into_place(running_log, out / "log.txt")
             handler = file_log(out / "log.txt", "a")
             stage = "writing the exports, evaluation, previews or report"
             extras = write_extras(
