@@ -28,7 +28,8 @@ def export_ply(m: Map, options: ExportOptions | None = None) -> bytes:
     return scene_to_ply(prepare(m, options), ascii=options.ascii)
 
 
-def scene_to_ply(scene: ExportScene, ascii: bool = False) -> bytes:
+def ply_elements(scene: ExportScene) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """The `vertex` (VERTEX_DTYPE) and `edge` (EDGE_DTYPE) records of the scene, and the header comments."""
     groups = scene.segment_groups()
     n_seg = sum(len(g.ids) for g in groups)
     n_pts = len(scene.points_xyz)
@@ -56,6 +57,12 @@ def scene_to_ply(scene: ExportScene, ascii: bool = False) -> bytes:
     p["red"], p["green"], p["blue"] = scene.points_rgb.T
     if n_pts:
         comments.append(f"points vertices {2 * n_seg} {2 * n_seg + n_pts}")
+    return vertex, edge, comments
+
+
+def scene_to_ply(scene: ExportScene, ascii: bool = False) -> bytes:
+    """The PLY file's bytes: header, then the records as they lie in memory (binary) or as text."""
+    vertex, edge, comments = ply_elements(scene)
     header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0"]
     header += [f"comment {c}" for c in comments]
     header += [f"element vertex {len(vertex)}"]

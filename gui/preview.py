@@ -28,6 +28,7 @@ import numpy as np
 
 from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import BackendUnavailableError, InputError
+from papl_mapper.extras import require
 from papl_mapper.map import Map
 from papl_mapper.palette import UNANCHORED_RGB, axis_colors, axis_names, line_colors
 from papl_mapper.scale.estimate import units_note
@@ -155,6 +156,10 @@ def _probe(window_class: str, env_items: tuple[tuple[str, str], ...]) -> tuple[b
     if proc.returncode < 0:
         tail = f"crashed with signal {-proc.returncode}: {tail}"
     return False, tail.replace("\x1b[0m", "").replace("\x1b[33m", "")[-300:]
+
+
+RENDER_MODULES = ("pyvista", "matplotlib", "PIL")
+"""What previews import (the 'render' extra); checked before any work so a missing one names the extra."""
 
 
 def find_offscreen_backend(env: dict[str, str] | None = None) -> str:
@@ -454,6 +459,8 @@ def render_views(
     """Render the chosen views (and optionally a turntable) of `m` into `out_dir` as `<view>.png`."""
     options = options or PreviewOptions()
     _check_options(options)
+    for module in RENDER_MODULES:
+        require(module, "rendering previews")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     scene = prepare_scene(m, options)
