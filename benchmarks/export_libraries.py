@@ -1,12 +1,17 @@
-"""Benchmark: the hand-written PLY and GLB writers against the libraries that could replace them.
+"""Benchmark: hand-written PLY and GLB writers against the libraries that could replace them.
 
 On one map of 1,000,000 segments and 1,000,000 points (benchmarks/export.py's synthetic map), each
-writer encodes the same prepared scene to bytes in memory, best of `--repeat` runs:
+writer encodes the same prepared scene to bytes in memory, best of `--repeat` runs; "product" in the
+JSON says which writer the exporters use (a library where it is not slower):
 
-- PLY: ours (`exporters.ply.scene_to_ply`), plyfile (`PlyData.write` of the records and comments
-  `exporters.ply.ply_elements` builds for ours, building included), Open3D (`write_line_set` of the
+- PLY: hand-written (the records of `exporters.ply.ply_elements` and a header, joined), plyfile
+  (`exporters.ply.scene_to_ply`: `PlyData.write` of those records), Open3D (`write_line_set` of the
   segments alone, to a temporary file, colours as doubles);
-- GLB: ours (`exporters.gltf.scene_to_gltf`), pygltflib (the same document and buffer through
+- ASCII PLY: hand-written (`scene_to_ply(ascii=True)`) and plyfile's text writer, on the same records;
+- tubes PLY (a triangle mesh, 16 vertices and faces per segment): hand-written
+  (`exporters.tubes.export_tubes_ply`,
+  preparation included) and plyfile (the records of `tube_ply_elements`, building included);
+- GLB: hand-written (`exporters.gltf.scene_to_gltf`), pygltflib (the same document and buffer through
   `GLTF2.from_dict` and `save_to_bytes`), trimesh (a `Path3D` of the segments with their colours,
   `export(file_type="glb")`; its time includes building the Path3D, which it needs).
 
@@ -32,6 +37,8 @@ from machine import machine_info
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "export_libraries.json"
+PRODUCT = {"ply": "plyfile", "ply_ascii": "hand_written", "tubes_ply": "hand_written", "glb": "hand_written"}
+"""The writer the exporters use for each format."""
 
 
 def best_of(fn: Callable[[], object], repeat: int) -> tuple[float, object]:
@@ -46,19 +53,21 @@ def best_of(fn: Callable[[], object], repeat: int) -> tuple[float, object]:
 
 def ply_writers(scene) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
     from papl_mapper.exporters.ply import ply_elements, scene_to_ply
-    from plyfile import PlyData, PlyElement
 
-    def plyfile_bytes() -> bytes:
-        vertex, edge, comments = ply_elements(scene)  # the records ours builds too, then plyfile writes
-        data = PlyData(
-            [PlyElement.describe(vertex, "vertex"), PlyElement.describe(edge, "edge")],
-            text=False,
-            byte_order="<",
-            comments=comments,
-        )
-        buf = io.BytesIO()
-        data.write(buf)
-        return buf.getvalue()
+    def hand_written_bytes() -> bytes:
+        """The binary writer the exporter had before plyfile: header text, then the records' memory."""
+        vertex, edge, comments = ply_elements(scene)
+        header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments)]
+        header += [
+            f"element vertex {len(vertex)}",
+            "property float x",
+            "property float y",
+            "property float z",
+        ]
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+        header += [f"element edge {len(edge)}", "property int vertex1", "property int vertex2"]
+        header += ["property uchar red", "property uchar green", "property uchar blue", "end_header", ""]
+        return b"".join(["\n".join(header).encode("ascii"), vertex.view(np.uint8), edge.view(np.uint8)])
 
     def open3d_bytes() -> bytes:
         import open3d as o3d
@@ -74,7 +83,56 @@ def ply_writers(scene) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
             o3d.io.write_line_set(path, ls, write_ascii=False)
             return Path(path).read_bytes()
 
-    return {"ours": lambda: scene_to_ply(scene), "plyfile": plyfile_bytes, "open3d": open3d_bytes}
+    return {
+        "hand_written": hand_written_bytes,
+        "plyfile": lambda: scene_to_ply(scene),
+        "open3d": open3d_bytes,
+    }
+
+
+def ply_ascii_writers(scene) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
+    from papl_mapper.exporters.ply import ply_elements, scene_to_ply
+    from plyfile import PlyData, PlyElement
+
+    def plyfile_bytes() -> bytes:
+        vertex, edge, comments = ply_elements(scene)
+        data = PlyData(
+            [PlyElement.describe(vertex, "vertex"), PlyElement.describe(edge, "edge")],
+            text=True,
+            comments=comments,
+        )
+        buf = io.BytesIO()
+        data.write(buf)
+        return buf.getvalue()
+
+    return {"hand_written": lambda: scene_to_ply(scene, ascii=True), "plyfile": plyfile_bytes}
+
+
+def tubes_ply_writers(m) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
+    from papl_mapper.exporters.scene import ExportOptions, prepare
+    from papl_mapper.exporters.tubes import export_tubes_ply, tube_ply_elements
+    from plyfile import PlyData, PlyElement
+
+    options = ExportOptions()
+    scene = prepare(m, options)
+
+    def plyfile_bytes() -> bytes:
+        vertex, face, comments = tube_ply_elements(scene, options)
+        faces = np.empty(len(face), [("vertex_indices", "<i4", (3,))])
+        faces["vertex_indices"] = face["vertex_indices"]
+        data = PlyData(
+            [
+                PlyElement.describe(vertex, "vertex"),
+                PlyElement.describe(faces, "face", len_types={"vertex_indices": "u1"}),
+            ],
+            byte_order="<",
+            comments=comments,
+        )
+        buf = io.BytesIO()
+        data.write(buf)
+        return buf.getvalue()
+
+    return {"hand_written": lambda: export_tubes_ply(m, options), "plyfile": plyfile_bytes}
 
 
 def glb_writers(scene) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
@@ -112,7 +170,7 @@ def glb_writers(scene) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
         return trimesh.Scene(path).export(file_type="glb")
 
     return {
-        "ours": lambda: G.scene_to_gltf(scene, binary=True),
+        "hand_written": lambda: G.scene_to_gltf(scene, binary=True),
         "pygltflib": pygltflib_bytes,
         "trimesh": trimesh_bytes,
     }
@@ -141,7 +199,9 @@ def main() -> int:
     ap.add_argument("--segments", type=int, default=1_000_000)
     ap.add_argument("--points", type=int, default=1_000_000)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--skip", default="", help="comma-separated writers to leave out, e.g. trimesh")
+    ap.add_argument(
+        "--skip", default="", help="comma-separated writers or formats to leave out, e.g. trimesh"
+    )
     args = ap.parse_args()
     sys.path.insert(0, str(ROOT))
     from export import synthetic_map
@@ -153,10 +213,18 @@ def main() -> int:
     load = [round(os.getloadavg()[0], 2)]
     rows: dict[str, dict[str, dict]] = {}
     print(f"map: {args.segments:,} segments, {args.points:,} points; best of {args.repeat}")
-    print(f"{'format':<6} {'writer':<10} {'seconds':>8} {'size MB':>8}  note")
-    for fmt, writers in (("ply", ply_writers(scene)), ("glb", glb_writers(scene))):
+    print(f"{'format':<10} {'writer':<10} {'seconds':>8} {'size MB':>8}  note")
+    formats = (
+        ("ply", ply_writers(scene)),
+        ("ply_ascii", ply_ascii_writers(scene)),
+        ("tubes_ply", tubes_ply_writers(m)),
+        ("glb", glb_writers(scene)),
+    )
+    for fmt, writers in formats:
+        if fmt in skip:
+            continue
         rows[fmt] = {}
-        ours = None
+        ref = None
         for name, fn in writers.items():
             if name in skip:
                 continue
@@ -165,24 +233,25 @@ def main() -> int:
                 seconds, data = best_of(fn, repeat)
             except Exception as exc:  # a library that cannot write this map is a result too
                 rows[fmt][name] = {"error": f"{type(exc).__name__}: {exc}"[:300]}
-                print(f"{fmt:<6} {name:<10} failed: {rows[fmt][name]['error']}")
+                print(f"{fmt:<10} {name:<10} failed: {rows[fmt][name]['error']}")
                 continue
-            ours = data if name == "ours" else ours
+            ref = data if name == "hand_written" else ref
             row = {"seconds": round(seconds, 3), "size_mb": round(len(data) / 2**20, 2), "runs": repeat}
-            if name != "ours" and ours is not None:
-                row["same_bytes_as_ours"] = data == ours
-                row["seconds_over_ours"] = round(seconds / rows[fmt]["ours"]["seconds"], 2)
+            if name != "hand_written" and ref is not None:
+                row["same_bytes_as_hand_written"] = data == ref
+                row["seconds_over_hand_written"] = round(seconds / rows[fmt]["hand_written"]["seconds"], 2)
             rows[fmt][name] = row
-            note = f"{row.get('seconds_over_ours', 1.0):.2f}x ours" + (
-                ", same bytes" if row.get("same_bytes_as_ours") else ""
+            note = f"{row.get('seconds_over_hand_written', 1.0):.2f}x hand-written" + (
+                ", same bytes" if row.get("same_bytes_as_hand_written") else ""
             )
-            print(f"{fmt:<6} {name:<10} {row['seconds']:>8.3f} {row['size_mb']:>8.2f}  {note}")
+            print(f"{fmt:<10} {name:<10} {row['seconds']:>8.3f} {row['size_mb']:>8.2f}  {note}")
     load.append(round(os.getloadavg()[0], 2))
     result = {
         "benchmark": "export_libraries",
         "segments": args.segments,
         "points": args.points,
         "writers": rows,
+        "product": PRODUCT,
         "notes": "seconds: best of the runs (trimesh: one run), encoding a prepared scene to bytes in memory "
         "(Open3D through a temporary file, its only way); 2 cores shared with other jobs",
         "load_average_1min_start_end": load,
