@@ -29,7 +29,7 @@ EXTRAS: dict[str, tuple[str, str]] = {
 def install_hint(module: str) -> str:
     """What to install for `module` (a top-level name in EXTRAS)."""
     extra, package = EXTRAS[module]
-    return f"{package} is not installed: pip install 'papl-mapper[{extra}]' (the '{extra}' extra)"
+    return f"{package} (the '{extra}' extra), which is not installed: pip install 'papl-mapper[{extra}]'"
 
 
 def require(module: str, feature: str) -> ModuleType:
