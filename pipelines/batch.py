@@ -61,7 +61,7 @@ STATE = ".batch"
 
 DEFAULT_MEMORY_GIB = 2.0
 """Memory one recording is expected to need: sizes the default --workers and Ray's memory request.
-A 60 s 1280x720 walk peaks at 0.6 GiB, a 5-minute one at 1.6 GiB (benchmarks/results/memory_long.json)."""
+Above the peak of the 5-minute 720p walk in benchmarks/results/memory_long.json (benchmarks/RESULTS.md)."""
 
 Row = dict[str, Any]
 
@@ -911,7 +911,7 @@ def run_batch(
         }
 
     def write(final: bool = False) -> None:
-        # at most every 2 s, and never more than 5% of the driver's time (10,000 rows take ~2 s)
+        # at most every WRITE_EVERY_S, and never more than 5% of the driver's time (large batches)
         now = time.perf_counter()
         if final or now - last_write[0] >= max(WRITE_EVERY_S, 20 * last_write[1]):
             folder.write(doc(final))
