@@ -227,7 +227,8 @@ def errors(est: Map, truth: Map, align: bool | str = True) -> dict[str, float]:
         dist = geo.line_distance(Le, Lt)
         out["line_error"] = float(np.mean(dist))
         out["line_error_median"] = float(np.median(dist))  # the mean is ruled by a few depth-starved lines
-        out["line_angle_deg"] = float(np.mean(geo.line_angle_deg(Le[:, 3:], Lt[:, 3:])))
+        d_e, d_t = (L[:, 3:] / np.linalg.norm(L[:, 3:], axis=1, keepdims=True) for L in (Le, Lt))
+        out["line_angle_deg"] = float(np.mean(geo.line_angle_deg(d_e, d_t)))
     if len(truth.axes):
         da = np.abs(np.sum((est.axes.directions @ R_.T) * truth.axes.directions, 1))
         out["axis_angle_deg"] = float(np.degrees(np.arccos(np.clip(da, 0, 1))).max())
