@@ -1,5 +1,5 @@
 # The README's two commands: `make demo` and `make test`. Both set up first (idempotent).
-.PHONY: setup demo test lint format bench
+.PHONY: setup demo test lint format bench results
 
 setup:
 	@bash scripts/setup.sh
@@ -15,3 +15,7 @@ test: setup
 lint: setup
 	.venv/bin/ruff check --fix .
 	.venv/bin/ruff format .
+
+# benchmarks/RESULTS.md from benchmarks/results/*.json (after re-running a benchmark)
+results: setup
+	.venv/bin/python benchmarks/results_md.py

@@ -30,10 +30,10 @@ from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 
 from papl_mapper.config import load_config
 from papl_mapper.eval import evaluate
-from papl_mapper.eval.trajectory import write_tum
 from papl_mapper.frontend import FrontendStats, open_recording, process, read_camera_file
 from papl_mapper.synth import SynthConfig, generate
 from papl_mapper.tracks import Tracks
+from papl_mapper.trajectory_io import write_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "accuracy.json"

@@ -28,10 +28,10 @@ from papl_mapper.pipelines.run import run
 from papl_mapper.config import load_config
 from papl_mapper.errors import UnmappableError
 from papl_mapper.eval import evaluate
-from papl_mapper.eval.trajectory import read_tum
 from papl_mapper.geometry.se3 import rotation_angle_deg
 from papl_mapper.map import Map
 from papl_mapper.synth import SynthConfig, generate, with_variants
+from papl_mapper.trajectory_io import read_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "adversarial.json"

@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 from machine import machine_info
 
-from papl_mapper.eval.trajectory import read_tum
 from papl_mapper.frontend import (
     FrontendConfig,
     FrontendStats,
@@ -43,9 +42,11 @@ from papl_mapper.frontend import (
 )
 from papl_mapper.frontend.gt import covered_fraction, detection_scores, track_match_precision
 from papl_mapper.frontend.lines import LineConfig, SegmentDetector, match_keyframe_lines
+from papl_mapper.geometry.lines import line_angle_deg
 from papl_mapper.synth.generate import SynthConfig, generate
 from papl_mapper.synth.project import visible_segments
 from papl_mapper.synth.scenes import make_scene
+from papl_mapper.trajectory_io import read_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL_FPS = 30.0
@@ -94,8 +95,8 @@ def main_thread_cpu_ms(stats: FrontendStats, config: FrontendConfig) -> float:
 
 
 def _line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c = np.abs(np.sum(a * b, axis=-1)) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
-    return np.degrees(np.arccos(np.clip(c, 0, 1)))
+    """geometry's line angle of directions of any length."""
+    return line_angle_deg(*(v / np.linalg.norm(v, axis=-1, keepdims=True) for v in (a, b)))
 
 
 def accuracy(path: Path, cfg: SynthConfig, tracks) -> dict:

@@ -25,12 +25,12 @@ from machine import machine_info  # noqa: E402
 from papl_mapper.pipelines.config import RunConfig  # noqa: E402
 
 from papl_mapper.eval import evaluate  # noqa: E402
-from papl_mapper.eval.trajectory import write_tum  # noqa: E402
 from papl_mapper.frontend import process  # noqa: E402
 from papl_mapper.frontend.camera import camera_for_recording  # noqa: E402
 from papl_mapper.frontend.video import open_recording  # noqa: E402
 from papl_mapper.mapping.culling import CullConfig, CullStats, cull_keyframes  # noqa: E402
 from papl_mapper.tracks import Tracks  # noqa: E402
+from papl_mapper.trajectory_io import write_tum  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "keyframe_culling.json"
 DEFAULT = [f"/tmp/papl_accuracy/{s}_noise3_10s" for s in ("corridor", "atlanta", "garage")]

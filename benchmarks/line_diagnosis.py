@@ -44,12 +44,13 @@ from papl_mapper.config import load_config
 from papl_mapper.eval import evaluate
 from papl_mapper.eval.evaluate import load_ground_truth
 from papl_mapper.eval.lines import nearest_segment_distance
-from papl_mapper.eval.trajectory import umeyama, write_tum
 from papl_mapper.eval.visibility import DEFAULT_MIN_FRAMES, NEAR, scene_occluders, segment_visibility
+from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.geometry.triangulation import observation_planes
 from papl_mapper.mapping.assemble import vp_directions_w
 from papl_mapper.mapping.lines import _plane_angle_deg
 from papl_mapper.tracks import Tracks
+from papl_mapper.trajectory_io import write_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "line_diagnosis.json"

@@ -1,8 +1,11 @@
-"""The paper's line-representation experiment: 2-parameter vs 4-parameter (orthonormal) vs 3-parameter
-(anchored) lines in the same BA, on synthetic scenes (fixed poses / small / large pose noise), on Xu et al.'s
-structural-line simulation and on Open-Structure sequences.
+"""The paper's line-representation experiment: structural lines as fixed directions (2n), orthonormal lines
+(4n), the paper's anchored form (n + 2 per axis) and the anchored form with a sideways offset (2n + 2, what
+`papl-map run` runs by default: RunConfig.ba.anchor_offset) in the same BA, on synthetic scenes (fixed poses
+/ small / large pose noise), on Xu et al.'s structural-line simulation and on Open-Structure sequences.
 
-Prints the tables (ours beside the papers' numbers) and writes benchmarks/results/line_representations.json.
+Prints the tables (the papers' numbers in brackets beside the same representation) and writes
+benchmarks/results/line_representations.json, whose "representations" say what each key is and
+"product_default" which one the product runs.
 Times are CPU seconds of the LM iterations of this process (robust to other jobs on the machine) and
 wall seconds of the whole global_ba call.
 
@@ -28,32 +31,51 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from papl_mapper import geometry as geo  # noqa: E402
 from papl_mapper.backend import BAConfig, global_ba  # noqa: E402
-from papl_mapper.backend.synthetic import SceneSpec, align_sim3, errors, make_scene, perturb  # noqa: E402
+from papl_mapper.backend.synthetic import SceneSpec, errors, make_scene, perturb  # noqa: E402
 from papl_mapper.geometry.lines import line_parallax_deg  # noqa: E402
+from papl_mapper.geometry.similarity import umeyama  # noqa: E402
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "line_representations.json"
 DATA = ROOT.parent / "shared" / "data"
-REPS = ("2-p", "4-p", "3-p", "3-p-paper", "3-p-paper-est")
-"""3-p: ours, the shared axis plus (inverse depth, sideways offset in px) per line, starting on the ray
-through the observed midpoint in the reference keyframe and free to leave it (2n + 2 parameters);
-3-p-paper: the paper's n + 2 (inverse depth on that ray only); 3-p-paper-est: n + 2 on the ray through
-the current estimate."""
-PAPER = {  # Table "Results on Synthetic Data" of the PAPL paper
-    "fixed": {"time": (0.956, 1.097, 0.251), "error_l": (0.014, 0.006, 0.009), "trans": (0, 0, 0)},
+FIXED, ORTHO, OFFSET, PAPER_FORM, PAPER_EST = (
+    "fixed_direction_2n",
+    "orthonormal_4n",
+    "offset_2n+2",
+    "paper_n+2",
+    "paper_n+2_estimate",
+)
+REPS = (FIXED, ORTHO, OFFSET, PAPER_FORM, PAPER_EST)
+REPRESENTATIONS = {
+    FIXED: "structural lines along their axis, fixed direction: 2 parameters per line (2n)",
+    ORTHO: "orthonormal lines, 4 parameters per line (4n)",
+    OFFSET: "anchored: the shared axis plus inverse depth and sideways offset (px) per line, starting on the "
+    "ray through the observed midpoint in the reference keyframe and free to leave it (2n + 2 per axis; "
+    "BAConfig.anchor_offset = true)",
+    PAPER_FORM: "anchored as in the paper: the shared axis plus one inverse depth on that ray per line "
+    "(n + 2 per axis; BAConfig.anchor_offset = false, `--preset paper-anchors`)",
+    PAPER_EST: "the paper's n + 2 on the ray through the current line estimate instead of the observation",
+}
+"""What each result key measures."""
+PAPER = {  # Table "Results on Synthetic Data" of the PAPL paper: its 2-p, 4-p and 3-p (n + 2) columns
+    "fixed": {
+        "time": {FIXED: 0.956, ORTHO: 1.097, PAPER_FORM: 0.251},
+        "error_l": {FIXED: 0.014, ORTHO: 0.006, PAPER_FORM: 0.009},
+        "trans": {FIXED: 0, ORTHO: 0, PAPER_FORM: 0},
+    },
     "small": {
-        "time": (5.977, 7.359, 4.686),
-        "error_l": (0.596, 0.942, 0.314),
-        "trans": (0.107, 0.109, 0.072),
+        "time": {FIXED: 5.977, ORTHO: 7.359, PAPER_FORM: 4.686},
+        "error_l": {FIXED: 0.596, ORTHO: 0.942, PAPER_FORM: 0.314},
+        "trans": {FIXED: 0.107, ORTHO: 0.109, PAPER_FORM: 0.072},
     },
     "large": {
-        "time": (6.934, 8.767, 5.100),
-        "error_l": (6.577, 5.144, 3.643),
-        "trans": (0.787, 0.775, 0.747),
+        "time": {FIXED: 6.934, ORTHO: 8.767, PAPER_FORM: 5.100},
+        "error_l": {FIXED: 6.577, ORTHO: 5.144, PAPER_FORM: 3.643},
+        "trans": {FIXED: 0.787, ORTHO: 0.775, PAPER_FORM: 0.747},
     },
 }
-XU_PAPER_CM = {"2-p": (0.06, 7.93, 14.99, 20.63), "4-p": (0.05, 5.34, 10.65, 16.17)}  # noise 0/1.5/3/4.5 px
+XU_PAPER_CM = {FIXED: (0.06, 7.93, 14.99, 20.63), ORTHO: (0.05, 5.34, 10.65, 16.17)}  # noise 0/1.5/3/4.5 px
 SCENARIOS = {"fixed": (0.0, 0.0), "small": (0.5, 0.03), "large": (2.0, 0.15)}  # pose noise: deg, units
 
 
@@ -75,21 +97,20 @@ def axes_from_lines(m: Map) -> None:
 
 
 def as_representation(m: Map, rep: str) -> tuple[Map, dict]:
-    """The same start in one representation: structural lines anchored (3-p), fixed-direction (2-p) or
-    orthonormal (4-p)."""
+    """The same start in one representation (a key of REPRESENTATIONS)."""
     out = copy.deepcopy(m)
     structural = out.lines.axis_weights.max(axis=1) > 0
-    if rep == "4-p":
+    if rep == ORTHO:
         out.lines.state[structural] = LineState.ORTHONORMAL
         return out, {}
     out.lines.state[structural] = LineState.ANCHORED
-    if rep == "3-p":
+    if rep == OFFSET:
         return out, {"anchor_offset": True}
-    if rep == "3-p-paper":
+    if rep == PAPER_FORM:
         return out, {"anchor_offset": False}
-    if rep == "3-p-paper-est":
+    if rep == PAPER_EST:
         return out, {"anchor_offset": False, "anchor_bearing": "estimate"}
-    return out, ({"structural_lines": "fixed_direction"} if rep == "2-p" else {})
+    return out, ({"structural_lines": "fixed_direction"} if rep == FIXED else {})
 
 
 def run_ba(m: Map, rep: str, **cfg) -> tuple[Map, dict]:
@@ -181,7 +202,7 @@ def exact_directions(seeds: list[int]) -> dict:
     0.5 deg): what the 0.5 deg tilt costs the anchored lines, which cannot represent it."""
     out = {}
     for tilt in (0.0, 0.5):
-        err = {rep: [] for rep in ("4-p", "3-p", "3-p-paper")}
+        err = {rep: [] for rep in (ORTHO, OFFSET, PAPER_FORM)}
         for seed in seeds:
             truth, start = _scene_and_start(seed, *SCENARIOS["small"], tilt_deg=tilt)
             for rep in err:
@@ -191,9 +212,9 @@ def exact_directions(seeds: list[int]) -> dict:
         m = {rep: np.mean(v, axis=0) for rep, v in err.items()}
         out[f"tilt_{tilt}_deg"] = {
             **{rep: {"error_l": float(v[0]), "error_l_median": float(v[1])} for rep, v in m.items()},
-            "error_l_3p_over_4p": float(m["3-p"][0] / m["4-p"][0]),
-            "error_l_median_3p_over_4p": float(m["3-p"][1] / m["4-p"][1]),
-            "error_l_3p_paper_over_4p": float(m["3-p-paper"][0] / m["4-p"][0]),
+            f"error_l_{OFFSET}_over_{ORTHO}": float(m[OFFSET][0] / m[ORTHO][0]),
+            f"error_l_median_{OFFSET}_over_{ORTHO}": float(m[OFFSET][1] / m[ORTHO][1]),
+            f"error_l_{PAPER_FORM}_over_{ORTHO}": float(m[PAPER_FORM][0] / m[ORTHO][0]),
         }
     return out
 
@@ -361,7 +382,7 @@ def _load_open_structure(seq: Path, frame_step: int) -> Map:
     return Map(cam, kf, points, lines, Axes(axes, -1))
 
 
-OS_REPS = ("4-p", "3-p", "3-p-paper")
+OS_REPS = (ORTHO, OFFSET, PAPER_FORM)
 OS_BA = {"huber_k_start": 20.0, "min_line_parallax_deg": 1.0}
 """Open-Structure BA settings, the same for every representation: a wide Huber stage (20 sigma) before the
 tight one, since from 1 deg / 5 cm starts the tight Huber alone left anchored lines in false minima (one
@@ -372,7 +393,7 @@ them there, keep their start geometry. True lines spanning less exist (corridor1
 walks along, spans 0.16 deg; livingroom2 19 of 124 lines, structure_texture_far 6 of 44; see
 "true_parallax_deg_min" and the worst lines in the JSON); with 0.5 deg after BA only, these were among the
 worst lines of every representation."""
-OS_PLAIN = ("4-p", "3-p-paper")
+OS_PLAIN = (ORTHO, PAPER_FORM)
 """Also run with the plain settings (huber_k only, no parallax guard) for a before/after in one run."""
 
 
@@ -380,8 +401,8 @@ def _per_line(est: Map, truth: Map) -> np.ndarray:
     """Per-line Error_l after the same similarity alignment as `errors` (cameras and points)."""
     src = np.concatenate([est.keyframes.T_wc[:, :3, 3], est.points.xyz])
     dst = np.concatenate([truth.keyframes.T_wc[:, :3, 3], truth.points.xyz])
-    s, R_, t = align_sim3(src, dst)
-    e = est.lines.endpoints_w * s @ R_.T + t
+    sim = umeyama(src, dst)
+    e = sim.apply(est.lines.endpoints_w)
     Le = geo.plucker_from_endpoints(e[:, 0], e[:, 1])
     Lt = geo.plucker_from_endpoints(truth.lines.endpoints_w[:, 0], truth.lines.endpoints_w[:, 1])
     return geo.line_distance(Le, Lt)
@@ -473,6 +494,13 @@ def _machine() -> dict:
     return machine_info()
 
 
+def product_default() -> str:
+    """The representation `papl-map run` optimises anchored lines in (its RunConfig's BA settings)."""
+    from papl_mapper.pipelines.config import RunConfig
+
+    return OFFSET if RunConfig().ba.anchor_offset else PAPER_FORM
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one seed, fewer frames (smoke test)")
@@ -497,8 +525,9 @@ def main() -> None:
             print(
                 f"  {k:<14} "
                 + "  ".join(f"{r} {v[r]['error_l']:.4f} ({v[r]['error_l_median']:.4f})" for r in REPS[1:4])
-                + f"  3-p/4-p {v['error_l_3p_over_4p']:.3f} (median {v['error_l_median_3p_over_4p']:.3f})"
-                + f"  3-p-paper/4-p {v['error_l_3p_paper_over_4p']:.3f}"
+                + f"  {OFFSET}/{ORTHO} {v[f'error_l_{OFFSET}_over_{ORTHO}']:.3f} "
+                + f"(median {v[f'error_l_median_{OFFSET}_over_{ORTHO}']:.3f})"
+                + f"  {PAPER_FORM}/{ORTHO} {v[f'error_l_{PAPER_FORM}_over_{ORTHO}']:.3f}"
             )
         result = json.loads(OUT.read_text()) if OUT.exists() else {"benchmark": "line_representations"}
         result["synthetic_exact_directions"] = {**ex, "machine": _machine()}
@@ -527,32 +556,28 @@ def main() -> None:
                 {"time_cpu_s": "time", "error_l": "error_l", "trans": "trans"}.get(key, "")
             )
             cells = []
-            for i, rep in enumerate(REPS):
+            for rep in REPS:
                 v = syn[name][rep][key]
-                cells.append(f"{v:.4g}" + (f" [{paper[i]}]" if paper and i < 3 else ""))
+                cells.append(f"{v:.4g}" + (f" [{paper[rep]}]" if paper and rep in paper else ""))
             print(f"{name:<8} {metric:<16}" + "".join(f"{c:>22}" for c in cells))
     ratios = {
-        "time_3p_over_4p_fixed": syn["fixed"]["3-p"]["time_cpu_s"] / syn["fixed"]["4-p"]["time_cpu_s"],
-        "time_3p_over_4p_small": syn["small"]["3-p"]["time_cpu_s"] / syn["small"]["4-p"]["time_cpu_s"],
-        "time_3p_over_4p_large": syn["large"]["3-p"]["time_cpu_s"] / syn["large"]["4-p"]["time_cpu_s"],
-        "error_l_3p_over_4p_small": syn["small"]["3-p"]["error_l"] / syn["small"]["4-p"]["error_l"],
-        "error_l_3p_over_4p_large": syn["large"]["3-p"]["error_l"] / syn["large"]["4-p"]["error_l"],
-        "error_l_3p_paper_over_4p_small": syn["small"]["3-p-paper"]["error_l"]
-        / syn["small"]["4-p"]["error_l"],
-        "error_l_3p_paper_over_4p_large": syn["large"]["3-p-paper"]["error_l"]
-        / syn["large"]["4-p"]["error_l"],
-        "time_3p_paper_over_4p_fixed": syn["fixed"]["3-p-paper"]["time_cpu_s"]
-        / syn["fixed"]["4-p"]["time_cpu_s"],
-        "time_3p_paper_over_4p_small": syn["small"]["3-p-paper"]["time_cpu_s"]
-        / syn["small"]["4-p"]["time_cpu_s"],
+        f"{metric}_{rep}_over_{ORTHO}_{scenario}": syn[scenario][rep][key] / syn[scenario][ORTHO][key]
+        for rep in (OFFSET, PAPER_FORM)
+        for metric, key, scenarios in (
+            ("time", "time_cpu_s", ("fixed", "small", "large")),
+            ("error_l", "error_l", ("small", "large")),
+        )
+        for scenario in scenarios
     }
     print("\nratios (goals: time fixed <= 0.25, with pose noise <= 0.65; Error_l with pose noise <= 0.35):")
     for k, v in ratios.items():
-        print(f"  {k:<28} {v:.3f}")
+        print(f"  {k:<44} {v:.3f}")
     if not only_os:
         xu = xu_line_sim((0.0, 1.5, 3.0, 4.5), 10 if args.quick else 5)
     if xu:
-        print("\nXu et al. simulation (80 vertical lines, fixed poses): accuracy cm [their 2-p / 4-p]")
+        print(
+            f"\nXu et al. simulation (80 vertical lines, fixed poses): accuracy cm [their {FIXED} / {ORTHO}]"
+        )
         for sigma, r in xu.items():
             i = ("0.0", "1.5", "3.0", "4.5").index(sigma)
             print(
@@ -560,7 +585,7 @@ def main() -> None:
                 + "  ".join(
                     f"{rep} {r[rep]['accuracy_cm']:.2f} cm ({r[rep]['time_cpu_s']:.2f} s)" for rep in REPS
                 )
-                + f"  [{XU_PAPER_CM['2-p'][i]} / {XU_PAPER_CM['4-p'][i]}]  init {r['init_cm']:.2f}"
+                + f"  [{XU_PAPER_CM[FIXED][i]} / {XU_PAPER_CM[ORTHO][i]}]  init {r['init_cm']:.2f}"
             )
     os_res = open_structure(8 if args.quick else 4, 1.0)
     if os_res:
@@ -573,7 +598,7 @@ def main() -> None:
                 x = r[rep]
                 w = x["worst_lines"]
                 print(
-                    f"  {seq:<22} {rep:<15} ATE {x['ate_rmse']:.4f}  Error_l {x['line_error']:.4f} / "
+                    f"  {seq:<22} {rep:<20} ATE {x['ate_rmse']:.4f}  Error_l {x['line_error']:.4f} / "
                     f"{x['line_error_median']:.4f}  worst5 {w['share_of_sum']:.0%} (ids "
                     f"{[v['id'] for v in w['lines']]})  angle {x['line_angle_deg']:.2f} deg  "
                     f"left out {x['dropped'].get('lines_low_parallax', 0)} held "
@@ -582,6 +607,8 @@ def main() -> None:
                 )
     result = {
         "benchmark": "line_representations",
+        "representations": REPRESENTATIONS,
+        "product_default": product_default(),
         "synthetic": syn,
         "ratios": ratios,
         "paper_synthetic": PAPER,

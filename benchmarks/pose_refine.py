@@ -27,9 +27,9 @@ from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 
 from papl_mapper.config import load_config
 from papl_mapper.eval import evaluate
-from papl_mapper.eval.trajectory import write_tum
 from papl_mapper.mapping.pose_refine import refine_pose
 from papl_mapper.tracks import Tracks
+from papl_mapper.trajectory_io import write_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "pose_refine.json"

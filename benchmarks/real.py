@@ -55,16 +55,14 @@ import numpy as np
 from machine import ROOT, git_commit, machine_info
 
 from papl_mapper.eval.trajectory import (
-    Trajectory,
     associate,
     associate_trajectories,
     ate_errors,
-    read_tum,
     rmse,
-    umeyama,
-    write_tum,
 )
 from papl_mapper.frontend.camera import read_camera_file
+from papl_mapper.geometry.similarity import umeyama
+from papl_mapper.trajectory_io import Trajectory, read_tum, write_tum
 
 OUT = ROOT / "benchmarks" / "results" / "real.json"
 DATA = ROOT.parent / "shared" / "data" / "real"

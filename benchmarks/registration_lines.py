@@ -32,9 +32,11 @@ from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 
 from papl_mapper.config import load_config
 from papl_mapper.eval import evaluate
-from papl_mapper.eval.trajectory import associate, read_tum, umeyama, write_tum
+from papl_mapper.eval.trajectory import associate
+from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.mapping import incremental
 from papl_mapper.tracks import Tracks
+from papl_mapper.trajectory_io import read_tum, write_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "registration_lines.json"

@@ -32,8 +32,9 @@ from papl_mapper.exporters import ExportOptions, prepare
 from papl_mapper.exporters.views import plan_view
 
 from papl_mapper.eval.lines import point_segment_distance, read_segments
-from papl_mapper.eval.trajectory import Trajectory, associate_trajectories, read_tum, umeyama
+from papl_mapper.eval.trajectory import associate_trajectories
 from papl_mapper.frontend.video import open_recording
+from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.map import Map
 from papl_mapper.scale import (
     camera_height_scale,
@@ -45,6 +46,7 @@ from papl_mapper.scale import (
 )
 from papl_mapper.synth import SynthConfig, generate
 from papl_mapper.synth.scenes import make_scene
+from papl_mapper.trajectory_io import Trajectory, read_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "scale.json"

@@ -18,7 +18,7 @@ import io
 
 import numpy as np
 
-from papl_mapper.errors import BackendUnavailableError
+from papl_mapper.extras import require
 from papl_mapper.map import Map
 
 from .scene import TRAJECTORY_RGB, ExportOptions, ExportScene, cad_split, prepare
@@ -50,11 +50,9 @@ def nearest_aci(rgb: tuple[int, int, int]) -> int:
 
 def new_document(scene: ExportScene):
     """An R2010 ezdxf document with the scene's units ($INSUNITS, $MEASUREMENT) and papl header variables."""
-    try:
-        import ezdxf
-        from ezdxf import units
-    except ImportError as exc:
-        raise BackendUnavailableError(f"DXF export needs ezdxf ({exc}); pip install ezdxf") from exc
+    ezdxf = require("ezdxf", "DXF export")
+    from ezdxf import units
+
     doc = ezdxf.new("R2010", setup=False)
     mpu = scene.meters_per_unit
     doc.units = {1.0: units.M, 0.01: units.CM, 0.001: units.MM}.get(mpu, 0)  # 0: unitless

@@ -4,6 +4,10 @@ Each axis (and the unanchored lines, the trajectory as LINE_STRIP, frusta as LIN
 POINTS with COLOR_0) is its own node and mesh, so viewers can toggle them. Materials carry the
 axis colour (converted to linear, as glTF requires) and `KHR_materials_unlit`. The map's +Z-up
 world is converted to glTF's +Y-up: (x, y, z) -> (x, z, -y). Units and axes go in `extras`.
+
+Hand-written (a dict and the buffer's bytes joined once) rather than through pygltflib or trimesh: on
+1M segments both were slower, trimesh by far, and trimesh adds no unlit material
+(benchmarks/export_libraries.py, benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations

@@ -310,14 +310,23 @@ def observation_counts(ids: np.ndarray, obs_ids: np.ndarray) -> np.ndarray:
     return np.bincount(order[pos[hit]], minlength=len(ids)).astype(np.int64)
 
 
-def frustum_segments(m: Map, depth: float) -> np.ndarray:
-    """(8N, 2, 3) frustum edges of every keyframe: 4 rays from the centre to the image corners, 4 rims."""
+def frustum_corners(m: Map, depth: float) -> np.ndarray:
+    """(N, 4, 3) world points `depth` in front of every keyframe on the rays through the image's outer
+    corners, clockwise from the top left. The image spans -0.5 .. width - 0.5 (pixel centres at integer
+    coordinates, DESIGN.md), so the frustum holds every pixel whole, not only the corner pixels' centres.
+    The one frustum of the exports, the viewer and the previews."""
     c = m.camera
-    u = np.array([-0.5, c.width - 0.5, c.width - 0.5, -0.5])  # image borders (pixel centres at integers)
+    u = np.array([-0.5, c.width - 0.5, c.width - 0.5, -0.5])
     v = np.array([-0.5, -0.5, c.height - 0.5, c.height - 0.5])
     rays_c = np.stack([(u - c.cx) / c.fx, (v - c.cy) / c.fy, np.ones(4)], axis=1) * depth  # (4, 3)
     T = m.keyframes.T_wc  # (N, 4, 4)
-    corners = np.einsum("nij,kj->nki", T[:, :3, :3], rays_c) + T[:, None, :3, 3]  # (N, 4, 3)
+    return np.einsum("nij,kj->nki", T[:, :3, :3], rays_c) + T[:, None, :3, 3]  # (N, 4, 3)
+
+
+def frustum_segments(m: Map, depth: float) -> np.ndarray:
+    """(8N, 2, 3) frustum edges of every keyframe: 4 rays from the centre to the image corners, 4 rims."""
+    corners = frustum_corners(m, depth)
+    T = m.keyframes.T_wc  # (N, 4, 4)
     centre = np.broadcast_to(T[:, None, :3, 3], corners.shape)
     rays = np.stack([centre, corners], axis=2)  # (N, 4, 2, 3)
     rims = np.stack([corners, np.roll(corners, -1, axis=1)], axis=2)  # (N, 4, 2, 3)

@@ -1,7 +1,7 @@
 """Vectorised text formatting for the text formats (ASCII PLY, OBJ, TUM, KITTI, COLMAP).
 
-One `%` over a repeated row format and a flat tuple formats a whole block in C, about ten
-times faster than a Python loop per row; blocks bound the memory of the temporary tuple.
+One `%` over a repeated row format and a flat tuple formats a whole block in C instead of a
+Python loop per row; blocks bound the memory of the temporary tuple.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Keyframe trajectories: TUM (`timestamp tx ty tz qx qy qz qw`) and KITTI (3x4 row-major per line).
 
 Both write the camera-to-world poses `T_wc` of every keyframe in time order, whatever `parts`
-says, so evo and other SLAM tools can compare them (monocular maps: use Sim(3) alignment).
+says, so evo and other SLAM tools can compare them (monocular maps: use Sim(3) alignment). The text
+comes from `papl_mapper.trajectory_io`, the formats' one home, as the run's `keyframes.tum` does.
 """
 
 from __future__ import annotations
@@ -9,12 +10,11 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from papl_mapper.map import Map
+from papl_mapper.trajectory_io import TUM_HEADER, format_kitti, format_tum
 
 from .scene import ExportOptions, check_finite, header_text
-from .text import format_rows
 
 log = logging.getLogger(__name__)
 
@@ -35,17 +35,14 @@ def export_tum(m: Map, options: ExportOptions | None = None) -> bytes:
     t, T = _poses(m, "TUM")
     if len(t) == 0:
         return b""
-    q_xyzw = Rotation.from_matrix(T[:, :3, :3]).as_quat()
-    q_xyzw *= np.where(q_xyzw[:, 3:] < 0, -1.0, 1.0)  # one sign convention: qw >= 0
     units = header_text(m.metadata.get("units", "arbitrary"), 40)
-    head = f"# timestamp tx ty tz qx qy qz qw (T_wc); units {units}\n"
-    return head.encode() + format_rows("%.9f %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", t, T[:, :3, 3], q_xyzw)
+    return format_tum(t, T, f"{TUM_HEADER} (T_wc); units {units}").encode()
 
 
 def export_kitti(m: Map, options: ExportOptions | None = None) -> bytes:
     """KITTI odometry poses: the 3x4 top of T_wc, row-major, one keyframe per line (no timestamps)."""
     _, T = _poses(m, "KITTI")
-    return format_rows(" ".join(["%.9g"] * 12) + "\n", T[:, :3, :4].reshape(-1, 12))
+    return format_kitti(T).encode()
 
 
 FORMATS = {

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from papl_mapper.errors import BackendUnavailableError
+from papl_mapper.extras import require
 from papl_mapper.map import Map
 from papl_mapper.palette import hex_color
 
@@ -24,12 +25,9 @@ from .scene import TRAJECTORY_RGB, ExportOptions, ExportScene, prepare
 
 
 def _pxr():
-    try:
-        from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdUtils, Vt
-    except ImportError as exc:  # usd-core is a declared dependency; a broken install lands here
-        raise BackendUnavailableError(
-            f"USD export needs the usd-core package ({exc}); pip install usd-core"
-        ) from exc
+    require("pxr.Usd", "USD export")
+    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdUtils, Vt
+
     return Gf, Kind, Sdf, Usd, UsdGeom, UsdUtils, Vt
 
 

@@ -9,14 +9,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from papl_mapper.extras import require
 from papl_mapper.palette import UNANCHORED_RGB, axis_colors, axis_names
 
 _DPI = 100
 
 
 def _figure(width_in: float = 6.4, height_in: float = 4.8):
-    import matplotlib
-
+    matplotlib = require("matplotlib", "the report's plots")
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
 

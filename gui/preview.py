@@ -28,6 +28,7 @@ import numpy as np
 
 from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import BackendUnavailableError, InputError
+from papl_mapper.extras import require
 from papl_mapper.map import Map
 from papl_mapper.palette import UNANCHORED_RGB, axis_colors, axis_names, line_colors
 from papl_mapper.scale.estimate import units_note
@@ -157,6 +158,10 @@ def _probe(window_class: str, env_items: tuple[tuple[str, str], ...]) -> tuple[b
     return False, tail.replace("\x1b[0m", "").replace("\x1b[33m", "")[-300:]
 
 
+RENDER_MODULES = ("pyvista", "matplotlib", "PIL")
+"""What previews import (the 'render' extra); checked before any work so a missing one names the extra."""
+
+
 def find_offscreen_backend(env: dict[str, str] | None = None) -> str:
     """Name the VTK off-screen window class that renders here (EGL, then OSMesa), probed in a subprocess.
 
@@ -257,13 +262,9 @@ def _robust_diagonal(m: Map) -> float:
 
 def _frusta(m: Map, depth: float) -> np.ndarray:
     """(K, 5, 3) apex and the four image corners at `depth` in front of each keyframe."""
-    c = m.camera
-    u = np.array([0.0, c.width - 1, c.width - 1, 0.0])
-    v = np.array([0.0, 0.0, c.height - 1, c.height - 1])
-    rays_c = np.stack([(u - c.cx) / c.fx, (v - c.cy) / c.fy, np.ones(4)], axis=1) * depth  # (4, 3)
-    R, t = m.keyframes.T_wc[:, :3, :3], m.keyframes.T_wc[:, :3, 3]
-    corners_w = np.einsum("kij,cj->kci", R, rays_c) + t[:, None]  # (K, 4, 3)
-    return np.concatenate([t[:, None], corners_w], axis=1)
+    from papl_mapper.exporters.scene import frustum_corners  # the exports' and the viewer's frustum
+
+    return np.concatenate([m.keyframes.T_wc[:, None, :3, 3], frustum_corners(m, depth)], axis=1)
 
 
 def _robust(x: np.ndarray, q: float) -> np.ndarray:
@@ -458,6 +459,8 @@ def render_views(
     """Render the chosen views (and optionally a turntable) of `m` into `out_dir` as `<view>.png`."""
     options = options or PreviewOptions()
     _check_options(options)
+    for module in RENDER_MODULES:
+        require(module, "rendering previews")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     scene = prepare_scene(m, options)

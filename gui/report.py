@@ -28,6 +28,7 @@ from papl_mapper.errors import BackendUnavailableError, InputError, PaplError
 from papl_mapper.map import Map
 from papl_mapper.palette import UNANCHORED_RGB, axis_colors, axis_names, hex_color
 from papl_mapper.scale.estimate import units_note
+from papl_mapper.trajectory_io import Trajectory, read_tum
 
 from . import plots
 from .preview import PreviewOptions, prepare_scene, render_views
@@ -95,7 +96,7 @@ class RunFolder:
     map_path: Path | None = None
     summary: dict[str, Any] | None = None
     trajectory_tum: Path | None = None
-    trajectory: np.ndarray | None = None  # (N, 8) timestamp tx ty tz qx qy qz qw
+    trajectory: Trajectory | None = None
     config_text: str | None = None
     log_text: str | None = None
     notes: list[str] = field(default_factory=list)
@@ -142,24 +143,6 @@ def load_run(source: str | os.PathLike | Map) -> RunFolder:
         if p.exists():
             setattr(run, attr, p.read_text(errors="replace"))
     return run
-
-
-def read_tum(path: Path) -> np.ndarray:
-    """(N, 8) rows `timestamp tx ty tz qx qy qz qw` of a TUM trajectory; InputError when malformed."""
-    rows = []
-    for k, line in enumerate(Path(path).read_text(errors="replace").splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        parts = line.split()
-        try:
-            values = [float(v) for v in parts]
-        except ValueError:
-            values = []
-        if len(values) != 8 or not np.isfinite(values).all():
-            raise InputError(f"{path}: line {k} is not 'timestamp tx ty tz qx qy qz qw'")
-        rows.append(values)
-    return np.asarray(rows, np.float64).reshape(-1, 8)
 
 
 # ---- HTML helpers ---------------------------------------------------------------------------
@@ -408,7 +391,7 @@ def per_frame_counts(run: RunFolder) -> tuple[np.ndarray, dict[str, np.ndarray],
 def _section_plots(run: RunFolder, options: ReportOptions) -> str:
     m = run.map
     scene = prepare_scene(m, dataclasses.replace(options.preview, show_points=False))
-    centres = run.trajectory[:, 1:4] if run.trajectory is not None else m.keyframes.T_wc[:, :3, 3]
+    centres = run.trajectory.positions if run.trajectory is not None else m.keyframes.T_wc[:, :3, 3]
     label = run.trajectory_tum.name if run.trajectory_tum else "keyframes"
     figs = [
         _img(

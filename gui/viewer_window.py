@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from papl_mapper.atomic import atomic_path
+from papl_mapper.extras import require
 from papl_mapper.map import Map
 from papl_mapper.palette import hex_color
 
@@ -96,9 +97,8 @@ SHORTCUTS: tuple[tuple[str, str, str], ...] = (
 def import_window_libraries() -> None:
     """Import Qt, pyvista and pyvistaqt without touching the display (the CLI overlaps this with its
     probe of the display in a child process)."""
-    import pyvista  # noqa: F401
-    import pyvistaqt  # noqa: F401
-    from PySide6 import QtWidgets  # noqa: F401
+    for module in ("PySide6.QtWidgets", "pyvista", "pyvistaqt"):  # Qt first: pyvistaqt needs it
+        require(module, "papl-map view")
 
 
 def frustum_depth(m: Map, diag: float) -> float:

@@ -110,3 +110,14 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def move_into_place(source: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Rename the finished file `source` (on the same file system) over the output `path`, under the same
+    policy as `atomic_path` (a link's target is replaced; a folder, FIFO or device is refused)."""
+    target = output_target(path)
+    try:
+        os.replace(source, target)
+    except OSError as exc:
+        raise OutputError(f"{path}: could not write the file ({exc.strerror or exc})") from exc
+    return Path(path)

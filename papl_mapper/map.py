@@ -503,7 +503,7 @@ MAX_META_BYTES = 64 << 20
 """Largest meta.json read (the metadata holds the config and timings: kilobytes)."""
 MAX_INFLATION = 20
 """Largest ratio of a member's declared size to its stored size: maps are written uncompressed, and
-real arrays deflate by under 3x; a higher ratio (a zip bomb) is refused before inflating."""
+real arrays deflate little; a far higher ratio (a zip bomb) is refused before inflating."""
 
 
 def _member(zf: zipfile.ZipFile, name: str, archive_bytes: int) -> zipfile.ZipInfo:

@@ -48,7 +48,7 @@ from papl_mapper.pipelines.batch_inputs import Recording, assign_names, collect
 from papl_mapper.pipelines.logfile import close_log, file_log
 
 from papl_mapper import __version__
-from papl_mapper.atomic import atomic_path
+from papl_mapper.atomic import atomic_path, move_into_place
 from papl_mapper.errors import InputError, PaplError
 from papl_mapper.outputs import add_outputs
 
@@ -61,7 +61,7 @@ STATE = ".batch"
 
 DEFAULT_MEMORY_GIB = 2.0
 """Memory one recording is expected to need: sizes the default --workers and Ray's memory request.
-A 60 s 1280x720 walk peaks at 0.6 GiB, a 5-minute one at 1.6 GiB (benchmarks/results/memory_long.json)."""
+Above the peak of the 5-minute 720p walk in benchmarks/results/memory_long.json (benchmarks/RESULTS.md)."""
 
 Row = dict[str, Any]
 
@@ -485,7 +485,7 @@ def run_job(spec: dict[str, Any]) -> Row:
                 resume=job.resume,
             )
             close_log(handler)
-            os.replace(running_log, out / "log.txt")
+            move_into_place(running_log, out / "log.txt")
             handler = file_log(out / "log.txt", "a")
             stage = "writing the exports, evaluation, previews or report"
             extras = write_extras(
@@ -911,7 +911,7 @@ def run_batch(
         }
 
     def write(final: bool = False) -> None:
-        # at most every 2 s, and never more than 5% of the driver's time (10,000 rows take ~2 s)
+        # at most every WRITE_EVERY_S, and never more than 5% of the driver's time (large batches)
         now = time.perf_counter()
         if final or now - last_write[0] >= max(WRITE_EVERY_S, 20 * last_write[1]):
             folder.write(doc(final))

@@ -31,7 +31,8 @@ from typing import Any
 
 from papl_mapper.pipelines.batch import EngineOptions, Job, Row, attempts, cpu_count, read_result, run_job
 
-from papl_mapper.errors import BackendUnavailableError, InputError
+from papl_mapper.errors import InputError
+from papl_mapper.extras import require
 
 log = logging.getLogger(__name__)
 
@@ -40,13 +41,7 @@ CANCEL_GRACE_S = 120.0
 
 
 def import_ray():
-    try:
-        import ray
-    except ImportError as exc:
-        raise BackendUnavailableError(
-            "Ray is not installed: pip install 'papl-mapper[ray]' (or leave out --ray for the local pool)"
-        ) from exc
-    return ray
+    return require("ray", "papl-map batch --ray (leave out --ray for the local pool)")
 
 
 def check_reachable(address: str, timeout_s: float = 5.0) -> None:

@@ -35,7 +35,6 @@ from papl_mapper.backend import global_ba
 from papl_mapper.backend.calibration import check_focal
 from papl_mapper.config import config_to_dict, dump_toml
 from papl_mapper.errors import InputError, OutputError, UnmappableError
-from papl_mapper.eval.trajectory import Trajectory, write_tum
 from papl_mapper.frontend import FrontendStats, process
 from papl_mapper.frontend.camera import camera_for_recording
 from papl_mapper.frontend.video import open_recording
@@ -65,6 +64,7 @@ from papl_mapper.mapping.windowed import WindowedRefiner
 from papl_mapper.outputs import begin_run
 from papl_mapper.scale import scale_from_config
 from papl_mapper.tracks import Tracks
+from papl_mapper.trajectory_io import Trajectory, write_tum
 
 log = logging.getLogger(__name__)
 

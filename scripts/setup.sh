@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Idempotent set-up for a fresh Debian machine (root, no screen, registries only):
-# system libraries, the .venv with the project and its dev extras, and the glTF validator.
+# system libraries, the .venv with the project and every extra, and the glTF validator.
 # A second run with nothing missing only checks and returns in seconds.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -43,9 +43,10 @@ want=$(sha256sum pyproject.toml | cut -d' ' -f1)
 if [[ ! -f $stamp || "$(cat "$stamp")" != "$want" ]]; then
     echo "setup: installing papl-mapper and its dependencies into .venv"
     .venv/bin/python -m pip install -q --upgrade pip
-    # the ray extra is optional for users (`papl-map batch --ray`); the tests run it on a local cluster;
-    # the viewer extra (Qt for `papl-map view`) likewise: the tests open its window under Xvfb
-    .venv/bin/python -m pip install -q -e ".[dev,ray,viewer]"
+    # every extra: the core is numpy, scipy, OpenCV, gtsam and PyYAML; rendering (previews, report),
+    # USD, DXF, the viewer (the tests open its window under Xvfb) and Ray (the tests run a local cluster)
+    # are extras users may leave out; test and dev hold the tests' independent readers and ruff
+    .venv/bin/python -m pip install -q -e ".[dev,test,render,usd,dxf,viewer,ray]"
     echo "$want" > "$stamp"
 fi
 

@@ -10,13 +10,13 @@ from papl_mapper.axes import (
     AxisState,
     associate,
     create_axes,
-    line_angle_deg,
     mean_angles_deg,
     pack_observations,
     remap_weights,
     update_axes,
 )
 from papl_mapper.errors import GeometryError
+from papl_mapper.geometry.lines import line_angle_deg
 
 MAX_AXIS_ERROR_DEG = 0.5  # mean-shift mode vs the true axis, 1-degree direction noise
 MAX_AXIS_ERROR_NOISELESS_DEG = 1e-6
@@ -56,7 +56,7 @@ def test_mean_shift_finds_atlanta_axes_among_outliers(sigma_deg, tol):
     dirs, _ = _lines(TRUE_AXES, 60, sigma_deg, 40, rng)
     res = create_axes(dirs, np.zeros((0, 3)), n_nonstructural=len(dirs), config=AxesConfig(max_new_axes=5))
     assert len(res.new_axes) == 3, res.reason
-    err = line_angle_deg(TRUE_AXES, res.new_axes).min(axis=1)
+    err = line_angle_deg(TRUE_AXES[:, None], res.new_axes[None]).min(axis=1)
     assert err.max() < tol, err
 
 
@@ -66,7 +66,7 @@ def test_near_duplicate_axes_become_one():
     dirs, _ = _lines(near, 50, 0.5, 10, rng)
     res = create_axes(dirs, np.zeros((0, 3)), len(dirs), AxesConfig(max_new_axes=5))
     assert len(res.new_axes) == 1
-    assert line_angle_deg(_h(11.0), res.new_axes)[0, 0] < 1.5
+    assert line_angle_deg(_h(11.0), res.new_axes)[0] < 1.5
 
 
 def test_creation_discards_existing_and_gates():
@@ -77,7 +77,7 @@ def test_creation_discards_existing_and_gates():
     existing = np.array([[0.0, 0.0, 1.0], _unit(_h(15.0))])
     res = create_axes(dirs, existing, len(dirs), cfg)
     assert len(res.new_axes) == 1
-    assert line_angle_deg(_h(70.0), res.new_axes)[0, 0] < 0.5
+    assert line_angle_deg(_h(70.0), res.new_axes)[0] < 0.5
     assert any("existing axis" in c.reason for c in res.candidates)
     # paper's ratio test: too few non-structural lines -> nothing created
     assert len(create_axes(dirs, existing, 10, cfg, n_structural=100).new_axes) == 0
@@ -131,7 +131,7 @@ def test_update_adopt_delete_merge():
     r = update_axes(axes, after, state, cfg)
     assert r.adopted == [1, 2]
     np.testing.assert_allclose(r.axes[0], axes[0])
-    assert line_angle_deg(r.axes[1], _h(3.0))[0, 0] < 1e-9
+    assert line_angle_deg(r.axes[1], _h(3.0)) < 1e-9
     assert r.state.jumps.tolist() == [0, 0, 1, 0]
     # axis 2 jumps again: deleted; the vertical jumping is never deleted
     after2 = r.axes.copy()
@@ -149,7 +149,7 @@ def test_update_adopt_delete_merge():
     r4 = update_axes(axes4, after4, st, cfg)
     assert r4.merged == [(3, 2)]
     assert r4.index_map.tolist() == [0, 1, 2, 2]
-    assert line_angle_deg(r4.axes[2], _h(45.0))[0, 0] < 1e-9
+    assert line_angle_deg(r4.axes[2], _h(45.0)) < 1e-9
     w = np.array([[0.0, 0.0, 0.5, 0.5], [1.0, 0.0, 0.0, 0.0]])
     np.testing.assert_allclose(remap_weights(w, r4.index_map, len(r4.axes)), [[0, 0, 1.0], [1.0, 0, 0]])
     assert r4.to_map_axes().vertical_index == 0

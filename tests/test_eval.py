@@ -13,7 +13,6 @@ from scipy.spatial.transform import Rotation
 from papl_mapper.errors import GeometryError, InputError
 from papl_mapper.eval import (
     EvalConfig,
-    Trajectory,
     associate,
     evaluate,
     line_metrics,
@@ -22,12 +21,11 @@ from papl_mapper.eval import (
     point_segment_distance,
     read_axes,
     read_segments,
-    read_tum,
     rpe,
-    umeyama,
-    write_tum,
 )
+from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map
+from papl_mapper.trajectory_io import Trajectory, read_tum, write_tum
 
 # named tolerances
 EXACT = 1e-9  # closed-form results on noise-free data
@@ -634,7 +632,7 @@ def test_cli_bad_inputs_are_one_line(tmp_path, capsys):
         main(["eval", "--gt", str(tmp_path / "scene"), str(tmp_path / "m.papl"), "--json", str(out_json)])
         == 2
     )
-    assert "cannot write the results" in capsys.readouterr().err
+    assert "x.json: the folder" in capsys.readouterr().err
     assert main(["eval", "--gt", str(tmp_path / "scene"), str(tmp_path / "m.papl")]) == 0
     out = capsys.readouterr().out
     assert "ATE RMSE" in out and "lines @ 2%" in out

@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from papl_mapper.eval import EvalConfig, Trajectory, evaluate, segment_visibility, write_tum
+from papl_mapper.eval import EvalConfig, evaluate, segment_visibility
 from papl_mapper.eval.visibility import frustum_intervals, occluded_intervals
 from papl_mapper.map import Camera, Keyframes, Lines, LineState, Map
 from papl_mapper.synth.path import walkthrough
 from papl_mapper.synth.project import NEAR, occluded, project, quads_in_view
 from papl_mapper.synth.scenes import make_scene
+from papl_mapper.trajectory_io import Trajectory, write_tum
 
 # named tolerances
 EXACT = 1e-9  # closed-form intervals

@@ -253,6 +253,26 @@ def test_frusta_are_thinned_and_point_forward():
     assert (scene.frusta_w[:, 1:, 2] > scene.frusta_w[:, :1, 2]).all()
 
 
+def test_preview_frusta_are_the_exports_frusta_at_the_image_borders():
+    """Preview and exports draw one frustum, through the image's outer corners (-0.5 .. width - 0.5 with
+    pixel centres at integers), not through the corner pixels' centres (half a pixel inside)."""
+    from papl_mapper.exporters.scene import frustum_segments
+
+    from .conftest import make_map
+
+    m = make_map(n_kf=5)
+    scene = P.prepare_scene(m, _opts(show_frusta=True))
+    exported = frustum_segments(m, 1.0).reshape(len(m.keyframes), 8, 2, 3)[:, :4, 1]  # ray ends
+    apex = scene.frusta_w[:, :1]
+    depth = (scene.frusta_w[:, 1:] - apex) @ np.array([0.0, 0.0, 1.0])  # identity rotations: depth = dz
+    np.testing.assert_allclose(scene.frusta_w[:, 1:], apex + (exported - apex) * depth[..., None])
+    cam = m.camera
+    corners_c = scene.frusta_w[0, 1:] - scene.frusta_w[0, 0]
+    uv = corners_c[:, :2] / corners_c[:, 2:] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+    w, h = cam.width - 0.5, cam.height - 0.5
+    np.testing.assert_allclose(uv, [[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]], atol=1e-9)
+
+
 def test_no_backend_is_a_clear_error(tmp_path):
     """Simulate missing GL libraries: broken libEGL/libOSMesa shadow the real ones."""
     fake = tmp_path / "fakegl"

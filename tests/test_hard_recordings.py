@@ -15,10 +15,12 @@ import pytest
 
 from papl_mapper.cli import main
 from papl_mapper.eval import evaluate
-from papl_mapper.eval.trajectory import associate_trajectories, read_tum, umeyama
+from papl_mapper.eval.trajectory import associate_trajectories
 from papl_mapper.geometry.se3 import rotation_angle_deg
+from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.map import Map
 from papl_mapper.synth import SynthConfig, generate, with_variants
+from papl_mapper.trajectory_io import read_tum
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 MAX_ATE_M = {"tum_fr3_long_office_17": 0.02, "icl_lr_kt1_250_366": 0.005}  # COLMAP: 9.5 and 12.9 mm

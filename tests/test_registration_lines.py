@@ -270,7 +270,7 @@ def test_registration_with_lines(noise_px: float) -> None:
     poses = {**reg.T_cw_frames, **reg.T_cw}
     est = np.stack([-poses[f][:3, :3].T @ poses[f][:3, 3] for f in frames])
     gt = np.stack([-T[:3, :3].T @ T[:3, 3] for T in T_true])
-    from papl_mapper.eval.trajectory import umeyama
+    from papl_mapper.geometry.similarity import umeyama
 
     sim = umeyama(est, gt)
     err = np.linalg.norm(sim.apply(est) - gt, axis=1)

@@ -11,8 +11,8 @@ import pytest
 from papl_mapper.exporters import export
 
 from papl_mapper.cli import main
-from papl_mapper.eval.trajectory import Trajectory, read_tum, write_tum
 from papl_mapper.map import Map
+from papl_mapper.trajectory_io import Trajectory, read_tum, write_tum
 from tests.test_scale import EYE_M, UNITS_PER_M, room_map
 
 EXPORTS = ("map.ply", "map.glb", "map.dxf", "map.colmap")

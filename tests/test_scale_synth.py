@@ -11,7 +11,8 @@ import pytest
 
 from papl_mapper.cli import main
 from papl_mapper.errors import InputError
-from papl_mapper.eval.trajectory import associate_trajectories, read_tum, umeyama
+from papl_mapper.eval.trajectory import associate_trajectories
+from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.map import Map
 from papl_mapper.scale import detect_markers, parse_marker_spec
 from papl_mapper.synth.generate import SynthConfig, camera_path
@@ -19,6 +20,7 @@ from papl_mapper.synth.markers import place_markers
 from papl_mapper.synth.project import project
 from papl_mapper.synth.render import Renderer
 from papl_mapper.synth.scenes import make_scene
+from papl_mapper.trajectory_io import read_tum
 
 
 @pytest.mark.parametrize("scene_name", ["corridor", "atlanta"])

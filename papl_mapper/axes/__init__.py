@@ -4,7 +4,6 @@ association by EM, update/merge/delete after BA. Pure numpy; directions are sign
 from papl_mapper.axes.association import associate, mean_angles_deg, pack_observations
 from papl_mapper.axes.config import AxesConfig
 from papl_mapper.axes.creation import Candidate, CreationResult, create_axes, mean_shift_modes
-from papl_mapper.axes.directions import line_angle_deg
 from papl_mapper.axes.update import AxisState, UpdateResult, remap_weights, update_axes
 
 __all__ = [
@@ -15,7 +14,6 @@ __all__ = [
     "UpdateResult",
     "associate",
     "create_axes",
-    "line_angle_deg",
     "mean_angles_deg",
     "mean_shift_modes",
     "pack_observations",

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from papl_mapper.axes.config import AxesConfig
-from papl_mapper.axes.directions import canonical_sign, line_angle_deg, unit_rows
+from papl_mapper.axes.directions import canonical_sign, unit_rows
+from papl_mapper.geometry.lines import line_angle_deg
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +104,7 @@ def create_axes(
         )
     dirs = unit_rows(line_dirs_w, "unclassified line directions")
     modes = mean_shift_modes(dirs, config)
-    ang = line_angle_deg(modes, dirs)  # (M, N)
+    ang = line_angle_deg(modes[:, None], dirs[None])  # (M, N)
     candidates: list[Candidate] = []
     for m, a in zip(modes, ang, strict=True):
         support = np.flatnonzero(a <= config.tau_d_deg)

@@ -20,12 +20,6 @@ def unit_rows(v: np.ndarray, what: str = "directions") -> np.ndarray:
     return v / n[:, None]
 
 
-def line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Unsigned angle between lines in degrees (0..90): (N,3) x (M,3) -> (N, M)."""
-    c = np.abs(np.asarray(a, np.float64).reshape(-1, 3) @ np.asarray(b, np.float64).reshape(-1, 3).T)
-    return np.degrees(np.arccos(np.clip(c, 0.0, 1.0)))
-
-
 def align_signs(v: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Flip the rows of v (N,3) so that each has a non-negative dot product with ref (3,)."""
     s = np.where(v @ ref < 0.0, -1.0, 1.0)

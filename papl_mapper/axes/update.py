@@ -9,8 +9,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from papl_mapper.axes.config import AxesConfig
-from papl_mapper.axes.directions import line_angle_deg, unit_rows
+from papl_mapper.axes.directions import unit_rows
 from papl_mapper.errors import GeometryError
+from papl_mapper.geometry.lines import line_angle_deg
 from papl_mapper.map import Axes
 
 log = logging.getLogger(__name__)
@@ -109,7 +110,7 @@ def update_axes(
     merged: list[tuple[int, int]] = []
     target = np.arange(a)
     order = sorted(range(a), key=lambda i: (i != state.vertical_index, state.serial[i]))
-    ang = line_angle_deg(result_dirs, result_dirs) if a else np.zeros((0, 0))
+    ang = line_angle_deg(result_dirs[:, None], result_dirs[None]) if a else np.zeros((0, 0))
     for pos, i in enumerate(order):
         if not keep[i]:
             continue

@@ -1,10 +1,11 @@
 """Line factors evaluated in one vectorised numpy pass per representation, served to gtsam per factor.
 
-gtsam calls a CustomFactor's Python function once per factor; doing the line algebra there costs about
-0.5 ms of numpy overhead per call (measured: 0.40 s for 482 track factors), far too slow for thousands
-of lines. Here every factor of a kind shares one `LineBatch`: the first factor called with new variable
-values triggers one vectorised evaluation of ALL units (line x axis x observation) -- residuals and
-Jacobian blocks scattered into a preallocated buffer -- and each factor then returns its slice.
+gtsam calls a CustomFactor's Python function once per factor; doing the line algebra there pays numpy's
+per-call overhead once per factor, far too slow for thousands of lines (the batched cost is in
+benchmarks/RESULTS.md, ba_scale). Here every factor of a kind shares one `LineBatch`: the first factor
+called with new variable values triggers one vectorised evaluation of ALL units (line x axis x
+observation) -- residuals and Jacobian blocks scattered into a preallocated buffer -- and each factor
+then returns its slice.
 Freshness is exact, not assumed: each factor compares its own variables (read from the Values it was
 given) with the snapshot the batch was computed from and recomputes on any difference.
 

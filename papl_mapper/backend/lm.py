@@ -2,11 +2,12 @@
 
 Why not gtsam.LevenbergMarquardtOptimizer.iterate(): when gtsam's C++ optimizer calls a Python
 CustomFactor, pybind11 copies the optimizer's (C++-owned) Values into a new Python object for EVERY
-call, so each of thousands of line factors pays a copy of all variables: measured 1.8 s per Gauss-Newton
-iteration against 0.41 s for the same linearise + solve + retract + error driven from Python on a
-60-keyframe problem, growing quadratically with size. Here the Values stay Python-owned, so callbacks
-receive the existing object. The algorithm is gtsam's: damping lambda * I added as prior factors,
-lambda divided by `lambda_factor` after an accepted step and multiplied after a rejected one.
+call, so each of thousands of line factors pays a copy of all variables: several times slower per
+Gauss-Newton iteration than the same linearise + solve + retract + error driven from Python, and growing
+quadratically with size (this driver's steps are timed in benchmarks/RESULTS.md, ba_scale). Here the
+Values stay Python-owned, so callbacks receive the existing object. The algorithm is gtsam's: damping
+lambda * I added as prior factors, lambda divided by `lambda_factor` after an accepted step and
+multiplied after a rejected one.
 """
 
 from __future__ import annotations

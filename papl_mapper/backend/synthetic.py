@@ -2,7 +2,7 @@
 
 A camera path runs along a corridor-like scene of structural lines on three orthogonal axes (world +Z up)
 and points; observations are exact projections plus optional pixel noise. `perturb` makes a start for
-BA; `align_sim3` and `errors` measure an estimate against the truth after a similarity alignment
+BA; `errors` measures an estimate against the truth after a similarity alignment
 (monocular maps are defined up to one).
 """
 
@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from papl_mapper import geometry as geo
+from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
 
 # camera looking along world +Y with world +Z up: x_c = +X, y_c = -Z, z_c = +Y
@@ -195,20 +196,6 @@ def perturb(
     return out
 
 
-def align_sim3(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama: scale s, rotation R, translation t minimising |dst - (s R src + t)|^2 over (n, 3) points."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    U_, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    E = np.eye(3)
-    if np.linalg.det(U_) * np.linalg.det(Vt) < 0:
-        E[2, 2] = -1
-    R_ = U_ @ E @ Vt
-    var = np.mean(np.sum(a * a, 1))
-    s = float(np.trace(np.diag(S) @ E) / var) if var > 0 else 1.0
-    return s, R_, mu_d - s * R_ @ mu_s
-
-
 def errors(est: Map, truth: Map, align: bool | str = True) -> dict[str, float]:
     """ATE RMSE of camera centres, point RMSE, mean and median Pluecker line error (paper's Error_l, |v| = 1),
     mean line angle (deg). `align`: True for a similarity alignment on camera centres and points together
@@ -223,7 +210,8 @@ def errors(est: Map, truth: Map, align: bool | str = True) -> dict[str, float]:
     elif align:
         src = np.concatenate([c_e, est.points.xyz])
         dst = np.concatenate([c_t, truth.points.xyz])
-        s, R_, t = align_sim3(src, dst)
+        sim = umeyama(src, dst)
+        s, R_, t = sim.scale, sim.R, sim.t
     else:
         s, R_, t = 1.0, np.eye(3), np.zeros(3)
 
@@ -239,7 +227,8 @@ def errors(est: Map, truth: Map, align: bool | str = True) -> dict[str, float]:
         dist = geo.line_distance(Le, Lt)
         out["line_error"] = float(np.mean(dist))
         out["line_error_median"] = float(np.median(dist))  # the mean is ruled by a few depth-starved lines
-        out["line_angle_deg"] = float(np.mean(geo.line_angle_deg(Le, Lt)))
+        d_e, d_t = (L[:, 3:] / np.linalg.norm(L[:, 3:], axis=1, keepdims=True) for L in (Le, Lt))
+        out["line_angle_deg"] = float(np.mean(geo.line_angle_deg(d_e, d_t)))
     if len(truth.axes):
         da = np.abs(np.sum((est.axes.directions @ R_.T) * truth.axes.directions, 1))
         out["axis_angle_deg"] = float(np.degrees(np.arccos(np.clip(da, 0, 1))).max())

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from papl_mapper.atomic import atomic_path, check_output_dir
+from papl_mapper.atomic import atomic_path, check_output_dir, move_into_place
 from papl_mapper.cli.progress import progress_bar
 from papl_mapper.config import load_config
 from papl_mapper.errors import InputError, OutputError, PaplError
@@ -138,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         raise
     finally:
         close_log(handler)
-    os.replace(running_log, args.out / "log.txt")
+    move_into_place(running_log, args.out / "log.txt")
     add_outputs(args.out, [args.out / "log.txt"])
     handler = file_log(args.out / "log.txt", "a")  # exports, previews and the report log there too
     try:

@@ -1,7 +1,7 @@
 """eval stage of papl-mapper: trajectory (ATE, RPE, scale), line-map and axis metrics against ground truth
 (line recall also against the part of the ground truth the recording shows)."""
 
-from .axes import AxisMatch, GtAxes, line_angle_deg, match_axes, read_axes
+from .axes import AxisMatch, GtAxes, match_axes, read_axes
 from .evaluate import (
     EvalConfig,
     EvalResult,
@@ -15,7 +15,7 @@ from .evaluate import (
     write_json,
 )
 from .lines import Segments, line_metrics, nearest_segment_distance, point_segment_distance, read_segments
-from .trajectory import Sim3, Trajectory, associate, associate_trajectories, read_tum, rpe, umeyama, write_tum
+from .trajectory import associate, associate_trajectories, rpe
 from .visibility import Visibility, recording_camera, scene_occluders, segment_visibility
 
 __all__ = [
@@ -25,14 +25,11 @@ __all__ = [
     "GroundTruth",
     "GtAxes",
     "Segments",
-    "Sim3",
-    "Trajectory",
     "Visibility",
     "associate",
     "associate_trajectories",
     "evaluate",
     "evaluate_path",
-    "line_angle_deg",
     "line_metrics",
     "load_ground_truth",
     "match_axes",
@@ -40,7 +37,6 @@ __all__ = [
     "point_segment_distance",
     "read_axes",
     "read_segments",
-    "read_tum",
     "recording_camera",
     "resolve_gt_dir",
     "resolve_result",
@@ -48,7 +44,5 @@ __all__ = [
     "scene_occluders",
     "segment_visibility",
     "trajectory_of_map",
-    "umeyama",
     "write_json",
-    "write_tum",
 ]

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from papl_mapper.errors import InputError
+from papl_mapper.geometry.lines import line_angle_deg
 
 
 @dataclass
@@ -62,13 +63,6 @@ def read_axes(path: str | os.PathLike) -> GtAxes:
     if not isinstance(names, list) or len(names) != len(d):
         raise InputError(f"{path}: 'names' must list one name per direction")
     return GtAxes(d / norms[:, None], v, [str(n) for n in names])
-
-
-def line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angles in degrees (0..90) between undirected unit directions a (..., 3) and b (..., 3)."""
-    c = np.abs(np.einsum("...i,...i->...", a, b))
-    s = np.linalg.norm(np.cross(a, b), axis=-1)
-    return np.degrees(np.arctan2(s, c))  # accurate for small angles, unlike arccos
 
 
 def match_axes(gt: np.ndarray, est: np.ndarray) -> AxisMatch:

@@ -16,10 +16,8 @@ class FlowConfig:
     """Settings of the KLT tracker shared by points and line samples."""
 
     win_size: int = 15
-    """Side of the LK window in pixels (odd). 11 halves the LK cost (3.4 -> 1.6 ms per 400 points at
-    640x360) with mixed mapping results (ATE % of path 15 -> 11 px: 10 s Atlanta 0.60 -> 0.12, corridor
-    0.24 -> 0.05, garage 0.51 -> 0.56, Atlanta noise 3 0.29 -> 0.12; demo 0.13 -> 0.20, its line
-    precision 0.88 -> 0.83), so 15 stays the default."""
+    """Side of the LK window in pixels (odd). 11 halves the LK cost but gave mixed mapping results
+    (better on some synthetic walks, worse on the garage and the demo), so 15 stays the default."""
     levels: int = 3
     """Pyramid levels above the full-resolution image."""
     fb_threshold_px: float = 1.0

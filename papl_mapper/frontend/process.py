@@ -78,9 +78,9 @@ class FrontendConfig:
     """Segment tracks joined across the keyframe pairs the wide-baseline features verified."""
     vp: VPConfig = field(default_factory=lambda: VPConfig(track_gate_deg=3.0))
     """Vanishing directions (Atlanta world with a vertical prior). The vertical prior is carried
-    from frame to frame by the point tracks' rotation (about 0.1 deg error per frame on the
-    synthetic corridor), so a frame's refined vertical is blended in only within 3 deg of it
-    (2, 3, 5 deg measured on the corridor: 3 gave the lowest vertical error at 640 and 1280 px)."""
+    from frame to frame by the point tracks' rotation (a small error per frame), so a frame's refined
+    vertical is blended in only within 3 deg of it (of 2, 3 and 5 deg, 3 gave the lowest vertical error
+    on the synthetic corridor at both resolutions tried)."""
     vanishing: bool = True
     """Estimate vanishing directions and structural labels (False: all segments -1)."""
     report_tracked_vertical: bool = True
@@ -106,8 +106,8 @@ class FrontendConfig:
     large frames; endpoints are mapped back to full resolution, min_length_px is in these pixels."""
     parallel: bool = True
     """Detect segments in a worker thread while points are tracked (OpenCV's EDLines releases the
-    GIL). The main thread's CPU per 1280x720 frame drops from about 21 to 12.5 ms; under a load of 15
-    on the 2-core machine the wall time was the same either way (11-13 fps, alternating runs)."""
+    GIL): the main thread's CPU per frame drops (benchmarks/RESULTS.md, frontend_throughput); on a
+    fully loaded machine the wall time is the same either way."""
     opencv_threads: int = 0
     """OpenCV's own worker threads while `process` runs (cv2.setNumThreads; restored afterwards);
     0 leaves OpenCV's setting as it is."""

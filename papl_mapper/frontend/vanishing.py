@@ -29,6 +29,7 @@ from typing import Literal
 import numpy as np
 
 from papl_mapper.errors import GeometryError, InputError
+from papl_mapper.geometry.lines import line_angle_deg as _line_angle_deg
 
 log = logging.getLogger(__name__)
 
@@ -267,10 +268,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.degrees(np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0)))
 
 
 def _perpendicular(v: np.ndarray) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""geometry stage of papl-mapper: numpy-only SE(3), Pluecker / orthonormal / anchored lines, triangulation.
+"""geometry stage of papl-mapper: numpy-only SE(3), Sim(3) alignment, Pluecker / orthonormal / anchored lines,
+triangulation.
 
 Knows nothing of gtsam; the backend feeds these functions' analytic Jacobians to its factors.
 """
@@ -46,6 +47,7 @@ from papl_mapper.geometry.se3 import (
     so3_log,
     transform,
 )
+from papl_mapper.geometry.similarity import Sim3, umeyama
 from papl_mapper.geometry.triangulation import (
     max_reprojection_px,
     observation_planes,
@@ -55,6 +57,7 @@ from papl_mapper.geometry.triangulation import (
 )
 
 __all__ = [
+    "Sim3",
     "anchor_from_endpoints",
     "anchor_from_observation",
     "anchor_offset_direction",
@@ -99,4 +102,5 @@ __all__ = [
     "triangulate_line_two_view",
     "triangulate_lines",
     "triangulate_points",
+    "umeyama",
 ]

@@ -490,8 +490,12 @@ def line_distance(L_a: np.ndarray, L_b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(A - sign * B, axis=-1)
 
 
-def line_angle_deg(L_a: np.ndarray, L_b: np.ndarray) -> np.ndarray:
-    """Unsigned angle between line directions, degrees."""
-    a = L_a[..., 3:] / np.linalg.norm(L_a[..., 3:], axis=-1, keepdims=True)
-    b = L_b[..., 3:] / np.linalg.norm(L_b[..., 3:], axis=-1, keepdims=True)
-    return np.degrees(np.arccos(np.clip(np.abs(np.sum(a * b, -1)), 0.0, 1.0)))
+def line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles in degrees (0..90) between undirected unit directions a (..., 3) and b (..., 3), broadcasting.
+
+    arccos of |a . b|: exact to about 1e-6 degrees (where the cosine runs out of digits), far below any
+    threshold or reported error; normalise a Pluecker line's direction `L[..., 3:]` first.
+    """
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    return np.degrees(np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0)))

@@ -8,10 +8,9 @@ frames keep their pose as registered non-keyframe frames. Keyframes whose remova
 line with too few keyframe views, or break the chain of shared points between neighbouring
 keyframes, are kept, as are the first keyframe, the initial pair and the last keyframe.
 
-Measured (benchmarks/memory_long.py, keyframe_culling.py): on a 60 s 720p corridor culling halves
-keyframes and peak memory (1.88 -> 0.90 GiB), but the trajectory error moves both ways with the
-settings and scene (0.119% -> 0.448% with min_other_views 3, 0.104% with 5; the 10 s Atlanta walk
-0.29% -> 0.89%), so the pipeline should keep it optional until that is understood.
+benchmarks/keyframe_culling.py and memory_long.py (benchmarks/RESULTS.md) show culling halving keyframes
+and the full BA's cost and memory, while the trajectory error moves both ways with the settings and the
+scene, so the pipeline keeps it optional until that is understood.
 """
 
 from __future__ import annotations

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from papl_mapper.errors import PaplError, UnmappableError
-from papl_mapper.eval.trajectory import Sim3, umeyama
 from papl_mapper.frontend.descriptors import match_descriptors
 from papl_mapper.geometry.se3 import invert, rotation_angle_deg, similarity_T_cw
+from papl_mapper.geometry.similarity import Sim3, umeyama
 from papl_mapper.geometry.triangulation import max_reprojection_px, triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions

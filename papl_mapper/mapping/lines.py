@@ -25,10 +25,11 @@ class LineInitConfig:
 
     min_views: int = 5
     """Fewest observations of a segment track (frames or keyframes, as triangulated): lines from 2-4
-    views are mostly texture edges (10 s scenes: precision +0.04-0.06 at 1%, recall -0.006..+0.001)."""
+    views are mostly texture edges (on the synthetic 10 s walks 5 raised precision at equal recall)."""
     min_plane_angle_deg: float = 1.0
     """Smallest angle between two observation planes: below it the depth is not observable (2 degrees
-    lost 56 of 194 ground-truth tracks of the 10 s corridor; 1 degree gains 0.04 recall there)."""
+    lost ground-truth tracks of the synthetic corridor that 1 degree keeps; benchmarks/line_diagnosis.py
+    counts the tracks each rule loses)."""
     max_error_px: float = 3.0
     """Largest endpoint-to-line reprojection error of an accepted line (RMS over its views)."""
     min_ray_angle_deg: float = 5.0
@@ -40,13 +41,13 @@ class LineInitConfig:
     min_vp_fraction: float = 0.5
     """Fewest of a track's observations classified to a vanishing direction, as a fraction, for the
     track to count as structural; the map holds structural lines, texture edges are left out (on the
-    10 s corridor they are 2/3 of the line length at precision 0.13). 0 keeps every track. 0.7 gives
-    0.005-0.025 more precision and 0.006-0.011 less recall, but moved the 10 s corridor's ATE from
-    0.133% to 0.243% of the path (0.5: 0.133%, as points only)."""
+    synthetic corridor they are most of the line length, at low precision). 0 keeps every track. 0.7
+    traded a little recall for a little precision but worsened the corridor's ATE, which 0.5 keeps at
+    the points-only value."""
     max_vp_angle_deg: float = 1.0
     """A track classified in fewer views than that is structural all the same when the image angle
     between its segments and the lines to its vanishing point, averaged weighted by segment length,
-    is below this (the frontend leaves 10-20% of the views of structural segments unclassified)."""
+    is below this (the frontend leaves some of the views of structural segments unclassified)."""
 
 
 @dataclass
@@ -231,8 +232,8 @@ def _aligned_direction(
     """The candidate world direction whose vanishing points a track's segments line up with best, if
     their image angle (averaged weighted by segment length: long segments give the surer angles) is
     within `max_vp_angle_deg`; None when none is. This decides whether a weakly classified track is
-    structural: on the 10 s scenes it keeps 96% of the ground-truth tracks' length and drops 71-95%
-    of the texture tracks' (a median angle drops 62-94%)."""
+    structural: on the synthetic walks it keeps nearly all of the ground-truth tracks' length and drops
+    most of the texture tracks' (more than a median angle does)."""
     if len(candidates) == 0:
         return None
     w = np.maximum(np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1), 1e-9)

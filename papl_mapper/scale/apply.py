@@ -10,8 +10,9 @@ import copy
 
 import numpy as np
 
-from papl_mapper.eval.trajectory import Sim3, Trajectory
+from papl_mapper.geometry.similarity import Sim3
 from papl_mapper.map import Map
+from papl_mapper.trajectory_io import Trajectory
 
 from .estimate import ScaleEstimate
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import InputError
-from papl_mapper.eval.trajectory import read_tum, write_tum
 from papl_mapper.map import Map, json_default
+from papl_mapper.trajectory_io import read_tum, write_tum
 
 from .apply import scale_map, scale_trajectory
 from .estimate import ScaleEstimate

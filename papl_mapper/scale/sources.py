@@ -10,8 +10,8 @@ import logging
 from collections.abc import Callable, Iterable
 
 from papl_mapper.errors import InputError
-from papl_mapper.eval.trajectory import Trajectory
 from papl_mapper.map import Map
+from papl_mapper.trajectory_io import Trajectory
 
 from .apply import scale_map, scale_trajectory
 from .config import ScaleConfig

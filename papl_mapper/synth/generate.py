@@ -53,6 +53,7 @@ from papl_mapper.synth.path import look_around, pan_then_walk, walkthrough
 from papl_mapper.synth.project import project, visible_points, visible_segments
 from papl_mapper.synth.render import Renderer
 from papl_mapper.synth.scenes import SCENES, Scene, low_texture, make_scene
+from papl_mapper.trajectory_io import TUM_HEADER, format_tum
 
 KEYFRAME_EVERY = 10  # GT map keyframes: every 10th frame
 MAX_GT_POINTS = 2000
@@ -390,7 +391,8 @@ def generate(
         (out / "gt").mkdir(exist_ok=True)
         staged.append(_stage_text(out / "timestamps.txt", stamps))
         staged.append(_stage_text(out / "camera.json", json.dumps(camera.to_dict(), indent=2) + "\n"))
-        staged.append(_stage_text(out / "gt" / "trajectory.tum", trajectory_tum(rec_t, rec_T)))
+        gt_header = f"{TUM_HEADER} (T_wc, camera to world, metres)"
+        staged.append(_stage_text(out / "gt" / "trajectory.tum", format_tum(rec_t, rec_T, gt_header)))
         staged.append(_stage_text(out / "gt" / "segments.txt", segments_txt(scene)))
         axes = {"directions": scene.axes.tolist(), "vertical_index": 0, "names": scene.axis_names}
         staged.append(_stage_text(out / "gt" / "axes.json", json.dumps(axes, indent=2) + "\n"))
@@ -468,18 +470,6 @@ def _stage_text(path: Path, text: str) -> tuple[Path, Path]:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(text)
     return tmp, path
-
-
-def trajectory_tum(timestamps: np.ndarray, T_wc: np.ndarray) -> str:
-    """TUM lines `t tx ty tz qx qy qz qw` of camera -> world poses."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(T_wc[:, :3, :3]).as_quat()  # x y z w
-    rows = [
-        f"{t:.9f} " + " ".join(f"{x:.9f}" for x in (*p, *qq))
-        for t, p, qq in zip(timestamps, T_wc[:, :3, 3], q, strict=True)
-    ]
-    return "# timestamp tx ty tz qx qy qz qw (T_wc, camera to world, metres)\n" + "\n".join(rows) + "\n"
 
 
 def segments_txt(scene: Scene) -> str:
