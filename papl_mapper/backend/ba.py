@@ -219,7 +219,7 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
             if kind == KIND_FIXDIR:
                 values.insert(F(i), np.zeros(2))
             elif kind == KIND_ORTHO:
-                Urot, phi = geo.ortho_from_plucker(geo.plucker_about(grp.L0[i], -grp.origin[i]))
+                Urot, phi = geo.ortho_from_plucker(grp.L0[i])
                 values.insert(U(i), gtsam.Rot3(Urot))
                 values.insert(W(i), np.array([phi]))
             else:
@@ -284,10 +284,9 @@ def _state(
             L, _ = batches[KIND_FIXDIR].lines_from(ab, np.arange(n))
             inv[kind], _ = geo.ray_inverse_depth(grp.bearing, T[grp.ref_kf], L)
         elif kind == KIND_ORTHO:
-            U_phi = [(values.atRot3(U(i)).matrix(), np.asarray(values.atVector(W(i))[0])) for i in range(n)]
             L = [
-                geo.plucker_about(geo.plucker_from_ortho(*up), o)
-                for up, o in zip(U_phi, grp.origin, strict=True)
+                geo.plucker_from_ortho(values.atRot3(U(i)).matrix(), np.asarray(values.atVector(W(i))[0]))
+                for i in range(n)
             ]
         else:
             if kind == KIND_TVP:

@@ -247,12 +247,8 @@ class LineBatch:
             L, J_par = self.lines_from(snap["ab"], line, jac)
         elif kind == KIND_ORTHO:
             Uu, phi = snap["U"][line], snap["s"][line]
-            origin = grp.origin[line]
-            if jac:
-                L, J_shift = geo.plucker_about(geo.plucker_from_ortho(Uu, phi), origin, jacobian=True)
-                J_par = J_shift @ geo.ortho_jacobian(Uu, phi)
-            else:
-                L, J_par = geo.plucker_about(geo.plucker_from_ortho(Uu, phi), origin), None
+            L = geo.plucker_from_ortho(Uu, phi)
+            J_par = geo.ortho_jacobian(Uu, phi) if jac else None
         else:
             vi = line if kind == KIND_TVP else self.u_axis
             if self.offset:
