@@ -342,6 +342,7 @@ def frontend_key(job: Job, cfg, probed: dict[str, Any]) -> str:
         {
             "input": probed["sha256"],
             "frontend": config_to_dict(cfg.frontend),
+            "seed": cfg.seed,
             "camera": cam.camera.to_dict(),
             "range": [job.start, job.end, job.step, job.max_size],
             "format": ckpt.FORMAT_VERSION,

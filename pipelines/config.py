@@ -48,8 +48,21 @@ class OutputConfig:
 class RunConfig:
     """Everything one run depends on; written beside the outputs as config.toml."""
 
-    RENAMED: ClassVar[dict[str, str]] = {"local_ba_every": "mapping.refine_every"}
-    """Keys of older config files and where their setting lives now (named in the error)."""
+    RENAMED: ClassVar[dict[str, str]] = {
+        "local_ba_every": "mapping.refine_every",
+        **{
+            f"{stage}.seed": "seed"
+            for stage in (
+                "frontend.vp",
+                "frontend.features",
+                "mapping.init",
+                "mapping.pnp",
+                "mapping.relative_pose",
+                "focal",
+            )
+        },
+    }
+    """Keys (full, dotted) of older config files and where their setting lives now (named in the error)."""
 
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     """Decoding, points, lines, vanishing points, keyframes."""
@@ -78,7 +91,9 @@ class RunConfig:
     scale: ScaleConfig = field(default_factory=ScaleConfig)
     """Metric scale after mapping (markers, camera height); none by default: arbitrary units."""
     seed: int = 0
-    """Seed for every random choice (RANSAC), so the same input gives the same map."""
+    """Seed of every random choice, so the same input gives the same map: the pipeline passes it to
+    each stage that draws (vanishing-point search, feature verification, initialisation, PnP, segment
+    merging, line directions, focal check); no stage has a seed setting of its own."""
     local_ba_window: int = 15
     """Keyframes optimised by each windowed BA."""
     axis_min_support_fraction: float = 0.03

@@ -167,6 +167,7 @@ def run(
             {
                 "input": sha,
                 "frontend": config_to_dict(cfg.frontend),
+                "seed": cfg.seed,
                 "camera": cam_src.camera.to_dict(),
                 "range": [start_s, end_s, step, max_size],
                 "format": ckpt.FORMAT_VERSION,
@@ -179,7 +180,7 @@ def run(
         if loaded is None:
             fstats = FrontendStats()
             with timer.stage("frontend"), progress("frontend") as cb:
-                tracks = process(rec, cam_src.camera, cfg.frontend, progress=cb, stats=fstats)
+                tracks = process(rec, cam_src.camera, cfg.frontend, progress=cb, stats=fstats, seed=cfg.seed)
             frontend_stats = dataclasses.asdict(fstats)
             with timer.stage("checkpoints"):
                 store.save("frontend", functools.partial(ckpt.write_tracks, tracks=tracks), frontend_stats)
@@ -192,7 +193,7 @@ def run(
             raise
         if cfg.focal.enabled:
             with timer.stage("focal_check"):
-                focal = check_focal(m, cfg.focal)
+                focal = check_focal(m, cfg.focal, cfg.seed)
             guessed = " (the camera was guessed from hfov_deg)" if cam_src.guessed else ""
             (log.warning if focal.warn else log.info)("%s%s", focal.message, guessed)
             stats["focal_check"] = focal.summary()
@@ -272,7 +273,6 @@ def map_tracks(
     timer = timer or _Timer()
     progress = progress or _silent
     store = store or StageStore.off()
-    cfg.mapping.pnp.seed = cfg.seed
 
     store.chain(cfg)
     loaded = store.load("registration", functools.partial(ckpt.read_registration, tracks=tracks))
@@ -280,7 +280,7 @@ def map_tracks(
         with timer.stage("registration"), progress("keyframes") as cb:
             refine = WindowedRefiner(tracks, cfg.ba, cfg.local_ba_window, cfg.max_point_error_px)
             reg = register_keyframes(
-                tracks, cfg.mapping, cb, refine if cfg.mapping.refine_every > 0 else None
+                tracks, cfg.mapping, cb, refine if cfg.mapping.refine_every > 0 else None, cfg.seed
             )
         _save(store, timer, "registration", ckpt.write_registration, reg=reg, tracks=tracks)
     else:
@@ -430,7 +430,7 @@ def _lines_and_axes(
         T_obs = np.stack([T_by_frame[int(f)] for f in frames]) if sel.any() else np.zeros((0, 4, 4))
         vp_w = vp_directions_w(tracks, frames, labels, T_obs)
         est = triangulate_lines(
-            tracks.line_track[sel], T_obs, tracks.line_xy[sel], vp_w, tracks.camera.K, cfg.lines
+            tracks.line_track[sel], T_obs, tracks.line_xy[sel], vp_w, tracks.camera.K, cfg.lines, cfg.seed
         )
     log.info("%d lines triangulated, %d from vanishing directions", len(est.track), int(est.from_vp.sum()))
     with timer.stage("axes"):
@@ -537,7 +537,7 @@ def frame_poses(tracks: Tracks, m: Map, cfg: RunConfig) -> dict[int, np.ndarray]
             known = pid[idx] == ids if len(pid) else np.zeros(len(ids), bool)
             guess = np.linalg.inv(last) if last is not None else None
             X, uv = m.points.xyz[idx[known]], uv[known]
-            res = track_pnp(X, uv, K, guess, cfg.mapping.pnp)
+            res = track_pnp(X, uv, K, guess, cfg.mapping.pnp, seed=cfg.seed)
             if not res.ok:
                 continue
             T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])

@@ -72,3 +72,24 @@ def test_run_config_has_one_source_for_the_windowed_ba_interval():
     assert cfg.mapping.refine_every == 5 and not hasattr(cfg, "local_ba_every")
     with pytest.raises(ConfigError, match="'local_ba_every' is now 'mapping.refine_every'"):
         load_config(RunConfig, None, ["local_ba_every=5"])
+
+
+def test_run_config_has_one_seed():
+    """`seed` is the only seed (the pipeline passes it to every stage); the per-stage seeds of older
+    config files name it."""
+    import dataclasses
+
+    from papl_mapper.pipelines.config import RunConfig
+
+    def seeds(obj, prefix=""):
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                yield from seeds(value, f"{prefix}{f.name}.")
+            elif f.name == "seed":
+                yield prefix + f.name
+
+    assert list(seeds(RunConfig())) == ["seed"]
+    for key in ("mapping.pnp.seed", "frontend.vp.seed", "focal.seed"):
+        with pytest.raises(ConfigError, match=f"'{key}' is now 'seed'"):
+            load_config(RunConfig, None, [f"{key}=3"])
