@@ -25,6 +25,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 from papl_mapper.pipelines.config import RunConfig
+from papl_mapper.pipelines.summary import MappingStats
 
 from papl_mapper import __version__
 from papl_mapper.axes.update import AxisState
@@ -52,8 +53,8 @@ TITLES = {
 
 # RunConfig fields a stage does not read. Everything else is part of its key, so a field added to
 # RunConfig later invalidates every checkpoint until it is listed here (safe, never stale).
-# frontend and hfov_deg act through the tracks and the camera, which the frontend key holds.
-_UPSTREAM = {"frontend", "hfov_deg"}
+# input, frontend and hfov_deg act through the tracks and the camera, which the frontend key holds.
+_UPSTREAM = {"input", "frontend", "hfov_deg"}
 _LATER_ONLY = {"output", "focal", "scale", "stray_line_margin"}
 _LINES_AND_AXES = {"lines", "axes", "variant", "axis_min_support_fraction", "lines_from_all_frames"}
 NOT_READ: dict[str, set[str]] = {
@@ -79,6 +80,24 @@ T = TypeVar("T")
 
 def _digest(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def frontend_key(input_sha256: str, config: RunConfig, camera: dict[str, Any]) -> str:
+    """The frontend's key (JSON text): the input's SHA-256, the frontend config and seed, the camera
+    fitted to the recording (`Camera.to_dict`), the frame range and the checkpoint format."""
+    i = config.input
+    return json.dumps(
+        {
+            "input": input_sha256,
+            "frontend": config_to_dict(config.frontend),
+            "seed": config.seed,
+            "camera": camera,
+            "range": [i.start_s, i.end_s, i.step, i.max_size],
+            "format": FORMAT_VERSION,
+        },
+        sort_keys=True,
+        default=str,
+    )
 
 
 def stage_key(previous: str, stage: str, config: RunConfig) -> str:
@@ -374,13 +393,11 @@ def write_map(folder: Path, m: Map, point_track: np.ndarray, axis_inputs: AxisIn
 
 def read_map(
     folder: Path, meta: dict[str, Any], tracks: Tracks
-) -> tuple[Map, dict[str, Any], AxisInputs | None, np.ndarray]:
+) -> tuple[Map, MappingStats, AxisInputs | None, np.ndarray]:
     """The map, the statistics so far, the axis-update inputs (None when the stage had none) and the
     (Kp,) point ids to put into `tracks` (checked against its length)."""
     m = Map.load(folder / "map.papl")
-    stats = meta["stats"]
-    if not isinstance(stats, dict):
-        raise ValueError("stage.json: stats is not a table")
+    stats = MappingStats.from_dict(meta["stats"])
     point_track = _check_point_track(np.load(folder / "point_track.npy", allow_pickle=False), tracks)
     path = folder / "axes.npz"
     if not path.exists():

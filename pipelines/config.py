@@ -6,18 +6,54 @@ of overrides applied before the user's own `--config` file and `--set` overrides
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
-from typing import ClassVar, Literal
+from pathlib import Path
+from typing import Any, ClassVar, Literal
 
 from papl_mapper.axes import AxesConfig
 from papl_mapper.backend import BAConfig
 from papl_mapper.backend.calibration import FocalCheckConfig
+from papl_mapper.errors import InputError
 from papl_mapper.frontend import FrontendConfig
 from papl_mapper.mapping.culling import CullConfig
 from papl_mapper.mapping.incremental import IncrementalConfig
 from papl_mapper.mapping.lines import LineInitConfig
 from papl_mapper.mapping.track_completion import CompletionConfig
 from papl_mapper.scale.config import ScaleConfig
+
+
+@dataclass
+class InputConfig:
+    """Which frames of the recording are mapped, at what size, with which camera: with the recording
+    itself (the run's argument) this fixes the frontend's input, so config.toml reproduces the run."""
+
+    camera: Path | None = None
+    """Intrinsics file: camera.json, OpenCV YAML/JSON, COLMAP cameras.txt, KITTI calib.txt (none: guessed
+    from `hfov_deg`, with a warning)."""
+    start_s: float | None = None
+    """Start time in seconds (none: the first frame)."""
+    end_s: float | None = None
+    """End time in seconds (none: the last frame)."""
+    step: int = 1
+    """Use every step-th frame."""
+    max_size: int | None = None
+    """Downscale so the longer image side is at most this many pixels (none: full size)."""
+
+
+def check_input(i: InputConfig) -> None:
+    """InputError unless the time range is finite, starts at or after 0 and ends after its start, the
+    step is 1 or more and the size at least 16 pixels (named by their command-line flags)."""
+    for name, value in (("--start", i.start_s), ("--end", i.end_s)):
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise InputError(f"{name} {value}: give a finite time in seconds, 0 or more")
+    if i.start_s is not None and i.end_s is not None and i.end_s <= i.start_s:
+        raise InputError(f"--end {i.end_s} s is not after --start {i.start_s} s")
+    if i.step < 1:
+        raise InputError(f"--step {i.step}: give 1 or more")
+    if i.max_size is not None and i.max_size < 16:
+        raise InputError(f"--max-size {i.max_size}: give 16 pixels or more")
 
 
 @dataclass
@@ -42,6 +78,8 @@ class OutputConfig:
     """Write PNG previews into previews/."""
     report: bool = False
     """Write report.html."""
+    gt: Path | None = None
+    """Ground-truth folder: write eval.json and compare the map with it in the report."""
 
 
 @dataclass
@@ -64,6 +102,8 @@ class RunConfig:
     }
     """Keys (full, dotted) of older config files and where their setting lives now (named in the error)."""
 
+    input: InputConfig = field(default_factory=InputConfig)
+    """Frame range, step, size and camera file of the recording."""
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     """Decoding, points, lines, vanishing points, keyframes."""
     mapping: IncrementalConfig = field(default_factory=IncrementalConfig)
@@ -123,3 +163,12 @@ PRESETS: dict[str, list[str]] = {
     "paper-anchors": ["ba.anchor_offset=false"],
     "no-final-completion": ["completion.after_full_ba=false"],
 }
+
+
+def with_input(config: RunConfig, **given: Any) -> RunConfig:
+    """`config` with the `input` fields that are given (not None) replaced: command-line flags (or a
+    batch's recording) over the config file."""
+    changes = {k: v for k, v in given.items() if v is not None}
+    if not changes:
+        return config
+    return dataclasses.replace(config, input=dataclasses.replace(config.input, **changes))

@@ -6,6 +6,8 @@ stage) -> upright rotation, axes and soft association -> full global BA over
 points, anchored and orthonormal lines -> axis update and a second BA -> every frame's pose.
 The frontend, registration, points BA and full BA are checkpointed in OUT/.checkpoint (see
 `pipelines/checkpoint.py`), so `--resume` after an interruption continues after the latest of them.
+`run` also owns the output folder: the checks before work, the outputs, log.txt, the extras and the
+manifest (`pipelines/run_outputs.py`), so the command line and the Python API do the same.
 """
 
 from __future__ import annotations
@@ -14,10 +16,10 @@ import contextlib
 import dataclasses
 import functools
 import hashlib
-import json
 import logging
-import math
+import os
 import time
+import traceback
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
@@ -28,20 +30,29 @@ import numpy as np
 from papl_mapper.pipelines import checkpoint as ckpt
 from papl_mapper.pipelines.checkpoint import AxisInputs, StageStore
 from papl_mapper.pipelines.config import RunConfig
+from papl_mapper.pipelines.logfile import close_log, file_log
+from papl_mapper.pipelines.run_outputs import (
+    Extras,
+    check_before_work,
+    unmapped_trajectory,
+    write_extras,
+    write_outputs,
+    write_unmapped,
+)
+from papl_mapper.pipelines.summary import MappingStats, RecordingInfo, RunSummary
 
 from papl_mapper import __version__
-from papl_mapper.atomic import atomic_path, check_output_dir
 from papl_mapper.backend import global_ba
 from papl_mapper.backend.calibration import check_focal
-from papl_mapper.config import config_to_dict, dump_toml
-from papl_mapper.errors import InputError, OutputError, UnmappableError
-from papl_mapper.eval.trajectory import Trajectory, write_tum
+from papl_mapper.config import config_to_dict
+from papl_mapper.errors import OutputError, PaplError, UnmappableError
+from papl_mapper.eval.trajectory import Trajectory
 from papl_mapper.frontend import FrontendStats, process
 from papl_mapper.frontend.camera import camera_for_recording
 from papl_mapper.frontend.video import open_recording
 from papl_mapper.geometry.se3 import invert
 from papl_mapper.geometry.triangulation import observation_planes
-from papl_mapper.map import Axes, Map, json_default
+from papl_mapper.map import Axes, Map
 from papl_mapper.mapping.assemble import (
     assemble_map,
     cull_observations,
@@ -61,14 +72,11 @@ from papl_mapper.mapping.structure import find_structure, line_weights
 from papl_mapper.mapping.track_completion import complete_tracks
 from papl_mapper.mapping.tracking import track_pnp
 from papl_mapper.mapping.windowed import WindowedRefiner
-from papl_mapper.outputs import begin_run
+from papl_mapper.outputs import add_outputs
 from papl_mapper.scale import scale_from_config
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
-
-OUTPUT_FILES = ("trajectory.tum", "keyframes.tum", "config.toml", "summary.json", "map.papl")
-"""What `run` writes into the output folder, in the order the files are renamed into place."""
 
 ProgressCallback = Callable[[int, int, str], None]
 ProgressFactory = Callable[[str], AbstractContextManager[ProgressCallback]]
@@ -81,11 +89,12 @@ def _silent(_: str) -> Iterator[ProgressCallback]:
 
 @dataclass
 class RunResult:
-    """What a run wrote and its summary (the same dict as summary.json)."""
+    """What a run wrote: the map, its summary (summary.json) and the extras of `config.output`."""
 
     out_dir: Path
     map: Map
-    summary: dict[str, Any] = field(default_factory=dict)
+    summary: RunSummary
+    extras: Extras = field(default_factory=Extras)
 
 
 class RunInterrupted(KeyboardInterrupt):
@@ -97,6 +106,24 @@ class RunInterrupted(KeyboardInterrupt):
         self.resume_from = resume_from
         """A stage of `checkpoint.STAGES`, or None when no stage had finished."""
         self.checkpoint_dir = checkpoint_dir
+
+    def message(self) -> str:
+        """The one line saying which stage Ctrl-C stopped and where --resume continues."""
+        if self.resume_from is None:
+            then = "nothing was checkpointed yet, so --resume starts from the beginning"
+        else:
+            then = f"rerun with --resume to continue from the {ckpt.TITLES[self.resume_from]} checkpoint"
+        out = self.checkpoint_dir.parent
+        return f"interrupted in {self.stage}: the outputs in {out} are unchanged; {then}"
+
+
+class ExtrasInterrupted(KeyboardInterrupt):
+    """Ctrl-C after the map and its outputs were written, while exports, evaluation, previews or the
+    report were: the folder holds the new map; some extras may be missing."""
+
+    def __init__(self, out_dir: Path) -> None:
+        super().__init__(str(out_dir))
+        self.out_dir = out_dir
 
 
 def _sha256(path: Path, limit: int = 1 << 30) -> str:
@@ -137,45 +164,70 @@ def run(
     out_dir: str | Path,
     config: RunConfig | None = None,
     *,
-    camera_file: str | Path | None = None,
-    start_s: float | None = None,
-    end_s: float | None = None,
-    step: int = 1,
-    max_size: int | None = None,
     resume: bool = False,
     progress: ProgressFactory | None = None,
 ) -> RunResult:
-    """Map one recording into `out_dir`: map.papl, trajectory.tum, keyframes.tum, config.toml, summary
-    (and manifest.json, see `papl_mapper.outputs`)."""
+    """Map one recording into `out_dir`: map.papl, trajectory.tum, keyframes.tum, config.toml,
+    summary.json, log.txt, the extras of `config.output` and manifest.json listing them.
+
+    `config.input` says which frames, at what size, with which camera, so config.toml and the
+    recording reproduce the run. Everything checkable is checked before the first frame. The log of
+    an unfinished run stays beside the checkpoints (a resumed run appends to it) and replaces log.txt
+    when the outputs are written, so log.txt always belongs to map.papl.
+    """
     cfg = config or RunConfig()
     progress = progress or _silent
     recording, out = Path(recording), Path(out_dir)
-    check_range(start_s, end_s)
-    check_output_dir(out)
+    check_before_work(out, cfg)
+    running_log = out / ".checkpoint" / "log.txt"
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        running_log.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from exc
+    handler = file_log(running_log, "a" if resume else "w")
+    try:
+        m, summary = _map_recording(recording, out, cfg, resume, progress)
+    except RunInterrupted as exc:  # the running log keeps why the run stopped
+        _log_only(handler, exc.message())
+        raise
+    except PaplError as exc:
+        _log_only(handler, f"error: {exc}")
+        raise
+    except Exception:
+        _log_only(handler, f"internal error:\n{traceback.format_exc()}")
+        raise
+    finally:
+        close_log(handler)
+    os.replace(running_log, out / "log.txt")
+    add_outputs(out, [out / "log.txt"])
+    handler = file_log(out / "log.txt", "a")  # exports, previews and the report log there too
+    try:
+        extras = write_extras(out, m, cfg, progress)
+    except KeyboardInterrupt as exc:
+        raise ExtrasInterrupted(out) from exc
+    finally:
+        close_log(handler)
+    return RunResult(out, m, summary, extras)
+
+
+def _log_only(handler: logging.Handler, message: str) -> None:
+    """An ERROR record into the run's log file only (the caller tells the terminal its own way)."""
+    handler.handle(log.makeRecord(log.name, logging.ERROR, __file__, 0, message, None, None))
+
+
+def _map_recording(
+    recording: Path, out: Path, cfg: RunConfig, resume: bool, progress: ProgressFactory
+) -> tuple[Map, RunSummary]:
+    """The stages, then the outputs (see `run`); RunInterrupted on Ctrl-C."""
     timer = _Timer()
     timer.current = "reading the input"
     store: StageStore | None = None
     try:
-        rec = open_recording(recording, step, start_s, end_s, max_size)
-        cam_src = camera_for_recording(camera_file, rec.width, rec.height, cfg.hfov_deg)
+        i = cfg.input
+        rec = open_recording(recording, i.step, i.start_s, i.end_s, i.max_size)
+        cam_src = camera_for_recording(i.camera, rec.width, rec.height, cfg.hfov_deg)
         sha = _sha256(recording)
-        key = json.dumps(
-            {
-                "input": sha,
-                "frontend": config_to_dict(cfg.frontend),
-                "seed": cfg.seed,
-                "camera": cam_src.camera.to_dict(),
-                "range": [start_s, end_s, step, max_size],
-                "format": ckpt.FORMAT_VERSION,
-            },
-            sort_keys=True,
-            default=str,
-        )
-        store = StageStore(out / ".checkpoint", key, resume)
+        store = StageStore(out / ".checkpoint", ckpt.frontend_key(sha, cfg, cam_src.camera.to_dict()), resume)
         loaded = store.load("frontend", ckpt.read_tracks)
         if loaded is None:
             fstats = FrontendStats()
@@ -189,14 +241,22 @@ def run(
         try:
             m, stats = map_tracks(tracks, cfg, timer, progress, store)
         except UnmappableError as exc:
-            _write_unmappable(out, tracks, cfg, exc, {"path": str(recording), "sha256": sha}, frontend_stats)
+            summary = RunSummary(
+                recording=RecordingInfo(str(recording), sha, int(len(tracks))),
+                frontend=frontend_stats,
+                status="unmapped",
+                error=str(exc),
+                frames_posed=len(exc.T_cw_frames),
+            )
+            write_unmapped(out, unmapped_trajectory(tracks.timestamp, exc.T_cw_frames), cfg, summary)
             raise
+        focal_check = None
         if cfg.focal.enabled:
             with timer.stage("focal_check"):
                 focal = check_focal(m, cfg.focal, cfg.seed)
             guessed = " (the camera was guessed from hfov_deg)" if cam_src.guessed else ""
             (log.warning if focal.warn else log.info)("%s%s", focal.message, guessed)
-            stats["focal_check"] = focal.summary()
+            focal_check = focal.summary()
         m.metadata.update(
             {
                 "units": "arbitrary",
@@ -214,47 +274,35 @@ def run(
             traj = frame_trajectory(tracks, m, cfg)
         with timer.stage("scale"):
             m, traj = scale_from_config(m, traj, cfg.scale, rec.frames)
-        summary = {
-            "recording": {
-                "path": str(recording),
-                "frames": int(len(tracks)),
-                "fps": float(rec.fps),
-                "width": int(rec.width),
-                "height": int(rec.height),
-                "sha256": sha,
-                "stopped_early": bool(rec.stopped_early),
-                "stop_message": rec.stop_message,
-            },
-            "camera": {
-                **cam_src.camera.to_dict(),
-                "source": cam_src.source,
-                "guessed": bool(cam_src.guessed),
-            },
-            "counts": m.summary(),
-            "frontend": frontend_stats,
-            "frames_lost": int(len(tracks) - len(traj)),
-            **stats,
-            "timings_s": timer.times,
-            "resumed": store.resumed.as_dict() if store.resumed else None,
-            "checkpoints_written": store.written,
-            "per_frame": _per_frame(tracks),
-        }
+        summary = RunSummary(
+            recording=RecordingInfo(
+                str(recording),
+                sha,
+                int(len(tracks)),
+                fps=float(rec.fps),
+                width=int(rec.width),
+                height=int(rec.height),
+                stopped_early=bool(rec.stopped_early),
+                stop_message=rec.stop_message,
+            ),
+            frontend=frontend_stats,
+            camera={**cam_src.camera.to_dict(), "source": cam_src.source, "guessed": bool(cam_src.guessed)},
+            counts=m.summary(),
+            frames_lost=int(len(tracks) - len(traj)),
+            mapping=stats,
+            focal_check=focal_check,
+            timings_s=timer.times,
+            resumed=store.resumed.as_dict() if store.resumed else None,
+            checkpoints_written=store.written,
+            per_frame=_per_frame(tracks),
+        )
         timer.current = "writing outputs"
-        _write_outputs(out, m, traj, cfg, summary)
+        write_outputs(out, m, traj, cfg, summary)
         store.prune()
     except KeyboardInterrupt as exc:
         latest = store.latest if store is not None else None
         raise RunInterrupted(timer.current or "between stages", latest, out / ".checkpoint") from exc
-    return RunResult(out, m, summary)
-
-
-def check_range(start_s: float | None, end_s: float | None) -> None:
-    """InputError unless the time range is finite, starts at or after 0 and ends after its start."""
-    for name, value in (("--start", start_s), ("--end", end_s)):
-        if value is not None and not (math.isfinite(value) and value >= 0):
-            raise InputError(f"{name} {value}: give a finite time in seconds, 0 or more")
-    if start_s is not None and end_s is not None and end_s <= start_s:
-        raise InputError(f"--end {end_s} s is not after --start {start_s} s")
+    return m, summary
 
 
 def map_tracks(
@@ -263,7 +311,7 @@ def map_tracks(
     timer: _Timer | None = None,
     progress: ProgressFactory | None = None,
     store: StageStore | None = None,
-) -> tuple[Map, dict[str, Any]]:
+) -> tuple[Map, MappingStats]:
     """Everything after the frontend: tracks -> optimised, upright Map and statistics.
 
     With a `store`, registration, points BA and full BA are checkpointed, and a resumed run continues
@@ -308,13 +356,13 @@ def map_tracks(
             return m, stats
         m, axis_inputs = _lines_and_axes(tracks, m, up is not None, cfg, timer)
         with timer.stage("ba_full"):
-            m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines)")
+            m, stats.ba = _ba(m, cfg, progress, "BA (points + lines)")
         if cfg.completion.enabled and cfg.completion.after_full_ba:
             # as after the points BA: the better poses confirm more observations; the BA after it also
             # re-applies the error limits to the lines the first full BA placed
-            stats["completion_full_ba"] = _complete(tracks, m, cfg, timer)
+            stats.completion_full_ba = _complete(tracks, m, cfg, timer)
             with timer.stage("ba_full"):
-                m, stats["ba"] = _ba(m, cfg, progress, "BA (points + lines, completed tracks)")
+                m, stats.ba = _ba(m, cfg, progress, "BA (points + lines, completed tracks)")
         _save(
             store,
             timer,
@@ -332,7 +380,7 @@ def map_tracks(
         with timer.stage("axis_update"):
             upd = update_axes(ai.axes_w, m.axes.directions, ai.state, cfg.axes)
             w = remap_weights(m.lines.axis_weights, upd.index_map, len(upd.axes))
-            stats["axis_update"] = upd.messages()
+            stats.axis_update = upd.messages()
             m.axes = upd.to_map_axes()
             fresh = line_weights(
                 ai.obs_dirs_w,
@@ -347,7 +395,7 @@ def map_tracks(
             set_line_states(m)
         if upd.adopted or upd.deleted or upd.merged:
             with timer.stage("ba_full"):
-                m, stats["ba"] = _ba(m, cfg, progress, "BA (after axis update)")
+                m, stats.ba = _ba(m, cfg, progress, "BA (after axis update)")
     dropped = drop_stray_lines(m, cfg.stray_line_margin)
     if dropped:
         log.info("%d lines reaching outside the points' extent dropped after BA", dropped)
@@ -359,6 +407,7 @@ def map_tracks(
 def _save(store: StageStore, timer: _Timer, stage: str, write: Callable[..., None], **kw: Any) -> None:
     """Checkpoint one stage (its write time adds to the "checkpoints" timing)."""
     stats = kw.pop("stats", None)
+    stats = stats.as_dict() if stats is not None else None
     if stage == "registration" and not ckpt.registration_storable():
         log.warning("registration is not checkpointed: Registration has fields the checkpoint does not know")
         store.skip(stage)
@@ -369,18 +418,18 @@ def _save(store: StageStore, timer: _Timer, stage: str, write: Callable[..., Non
 
 def _points_ba(
     tracks: Tracks, reg: Registration, cfg: RunConfig, timer: _Timer, progress: ProgressFactory
-) -> tuple[Map, dict[str, Any]]:
+) -> tuple[Map, MappingStats]:
     """Keyframe culling, the points-only map and its global BA, with the statistics so far."""
     n_registered = len(reg.frames)
     cull_stats = CullStats()
     with timer.stage("culling"):
         reg = cull_keyframes(tracks, reg, cfg.cull, cull_stats)
     T_wc = {f: np.linalg.inv(T) for f, T in reg.T_cw.items()}
-    stats: dict[str, Any] = {
-        "frames_unregistered": len(reg.lost),
-        "keyframes_registered": n_registered,
-        "culling": cull_stats.as_dict(),
-        "revisits": [
+    stats = MappingStats(
+        frames_unregistered=len(reg.lost),
+        keyframes_registered=n_registered,
+        culling=cull_stats.as_dict(),
+        revisits=[
             {
                 "frame": rv.frame,
                 "old_frame": rv.old_frame,
@@ -390,14 +439,14 @@ def _points_ba(
             }
             for rv in reg.revisits
         ],
-    }
+    )
     m = assemble_map(tracks, T_wc, reg.points_w, LineEstimates.empty())
     with timer.stage("ba_points"):
-        m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points)")
+        m, stats.ba_points = _ba(m, cfg, progress, "BA (points)")
     if cfg.completion.enabled:
-        stats["completion"] = _complete(tracks, m, cfg, timer)
+        stats.completion = _complete(tracks, m, cfg, timer)
         with timer.stage("ba_points"):
-            m, stats["ba_points"] = _ba(m, cfg, progress, "BA (points, completed tracks)")
+            m, stats.ba_points = _ba(m, cfg, progress, "BA (points, completed tracks)")
     return m, stats
 
 
@@ -566,54 +615,12 @@ def _per_frame(tracks: Tracks) -> dict[str, list[int]]:
     }
 
 
-def _write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary: dict[str, Any]) -> None:
-    """Every output is written under a temporary name first, then all are renamed (the map last), so an
-    interruption while writing leaves the previous run's outputs, not a mix of two runs (only a Ctrl-C
-    landing between two of the five renames, a window of microseconds, could still mix them)."""
-    with contextlib.ExitStack() as stack:
-        # contexts close in reverse: the map, entered first, is renamed last
-        tmp = {name: stack.enter_context(atomic_path(out / name)) for name in reversed(OUTPUT_FILES)}
-        m.save(tmp["map.papl"])
-        _atomic_text(tmp["summary.json"], json.dumps(summary, indent=1, default=json_default))
-        _atomic_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
-        write_tum(tmp["keyframes.tum"], Trajectory(m.keyframes.timestamp, m.keyframes.T_wc, "keyframes"))
-        write_tum(tmp["trajectory.tum"], traj)
-    begin_run(out, [out / name for name in OUTPUT_FILES])
-
-
-def _write_unmappable(
-    out: Path,
-    tracks: Tracks,
-    cfg: RunConfig,
-    exc: UnmappableError,
-    recording: dict[str, Any],
-    frontend_stats: dict[str, Any],
-) -> None:
-    """What a recording that cannot be mapped still gives: the poses found (orientations of a camera
-    turning in place), the config and a summary saying why; no map, no structure."""
-    frames = np.array(sorted(exc.T_cw_frames), np.int64)
-    T_wc = np.array([invert(exc.T_cw_frames[int(f)]) for f in frames]).reshape(-1, 4, 4)
-    summary = {
-        "status": "unmapped",
-        "error": str(exc),
-        "recording": {**recording, "frames": int(len(tracks))},
-        "frames_posed": int(len(frames)),
-        "frontend": frontend_stats,
-    }
-    names = ("trajectory.tum", "config.toml", "summary.json")
-    with contextlib.ExitStack() as stack:
-        tmp = {name: stack.enter_context(atomic_path(out / name)) for name in names}
-        write_tum(
-            tmp["trajectory.tum"], Trajectory(tracks.timestamp[frames].astype(np.float64), T_wc, "trajectory")
-        )
-        _atomic_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
-        _atomic_text(tmp["summary.json"], json.dumps(summary, indent=1, default=json_default))
-    begin_run(out, [out / name for name in names])
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-
-
-__all__ = ["RunConfig", "RunInterrupted", "RunResult", "check_range", "frame_trajectory", "map_tracks", "run"]
+__all__ = [
+    "ExtrasInterrupted",
+    "RunConfig",
+    "RunInterrupted",
+    "RunResult",
+    "frame_trajectory",
+    "map_tracks",
+    "run",
+]

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import papl_mapper.pipelines.run as pipeline
+import papl_mapper.pipelines.run_outputs as run_outputs
 import pytest
 from papl_mapper.pipelines import checkpoint as ckpt
 from papl_mapper.pipelines.config import RunConfig
@@ -131,7 +132,7 @@ CASES = {
         "ba_full",
     ),
     "writing outputs": (
-        lambda mp: mp.setattr(pipeline, "write_tum", _Boom(pipeline.write_tum)),
+        lambda mp: mp.setattr(run_outputs, "write_tum", _Boom(run_outputs.write_tum)),
         4,
         "ba_full",
     ),
