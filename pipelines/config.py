@@ -109,8 +109,8 @@ class RunConfig:
     mapping: IncrementalConfig = field(default_factory=IncrementalConfig)
     """Initialisation, PnP tracking, point triangulation."""
     cull: CullConfig = field(default_factory=lambda: CullConfig(enabled=False))
-    """Redundant keyframe culling after registration. Off: it halves keyframes and BA memory on a 60 s
-    720p walk (1298 -> 721, 1.88 -> 0.93 GiB) but moved the 10 s Atlanta walk from 0.29% to 0.90% of path."""
+    """Redundant keyframe culling after registration. Off: it halves keyframes and BA memory but costs
+    accuracy (benchmarks/RESULTS.md)."""
     completion: CompletionConfig = field(default_factory=CompletionConfig)
     """Track merging, completion and retriangulation after the points-only BA (then BA again)."""
     lines: LineInitConfig = field(default_factory=LineInitConfig)
@@ -118,10 +118,9 @@ class RunConfig:
     axes: AxesConfig = field(default_factory=AxesConfig)
     """Principal-axis creation, association and update."""
     ba: BAConfig = field(default_factory=lambda: BAConfig(relative_error_tol=1e-3, anchor_offset=True))
-    """Bundle adjustment. Stops when an iteration gains under 0.1% of the cost (3 iterations instead of
-    30 on the demo at the same ATE). Anchored lines get the sideways offset besides the inverse depth
-    (2n + 2 parameters per axis instead of the paper's n + 2, `--preset paper-anchors`): each line then
-    fits all its views instead of passing through one observation's ray (benchmarks/results/real.json)."""
+    """Bundle adjustment. Stops when an iteration gains under 0.1% of the cost; anchored lines get the
+    sideways offset besides the inverse depth (2n + 2 parameters per axis instead of the paper's n + 2,
+    `--preset paper-anchors`), so each line fits all its views (benchmarks/RESULTS.md)."""
     variant: VariantConfig = field(default_factory=VariantConfig)
     """Ablation switches."""
     output: OutputConfig = field(default_factory=OutputConfig)
