@@ -34,6 +34,7 @@ from papl_mapper.errors import OutputError
 from papl_mapper.map import Map, json_default
 from papl_mapper.mapping.incremental import Registration
 from papl_mapper.mapping.revisit import Revisit
+from papl_mapper.mapping.structure import AxisInputs
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -56,7 +57,7 @@ TITLES = {
 # input, frontend and hfov_deg act through the tracks and the camera, which the frontend key holds.
 _UPSTREAM = {"input", "frontend", "hfov_deg"}
 _LATER_ONLY = {"output", "focal", "scale", "stray_line_margin"}
-_LINES_AND_AXES = {"lines", "axes", "variant", "axis_min_support_fraction", "lines_from_all_frames"}
+_LINES_AND_AXES = {"lines", "axes", "variant", "lines_from_all_frames"}
 NOT_READ: dict[str, set[str]] = {
     "registration": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES | {"cull", "completion", "max_line_error_px"},
     "ba_points": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES,
@@ -359,17 +360,6 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
 
 
 # ---- points BA and full BA --------------------------------------------------------------------
-
-
-@dataclass
-class AxisInputs:
-    """What the axis update after the full BA needs from line triangulation and axis creation."""
-
-    axes_w: np.ndarray  # (A, 3) axes as created, before the BA moved them
-    state: AxisState
-    obs_dirs_w: np.ndarray  # (K, 3) world vanishing directions of the line observations
-    obs_line: np.ndarray  # (K,) index into line_track
-    line_track: np.ndarray  # (M,) sorted track ids of the triangulated lines
 
 
 def write_map(folder: Path, m: Map, point_track: np.ndarray, axis_inputs: AxisInputs | None = None) -> None:

@@ -58,14 +58,10 @@ def check_input(i: InputConfig) -> None:
 
 @dataclass
 class VariantConfig:
-    """Which parts of the method are on (the ablation switches)."""
+    """Which map the method builds (the axes' own switches are in `axes`: association, update)."""
 
     lines: Literal["anchored", "orthonormal", "none"] = "anchored"
     """Anchored structural lines (the method), every line orthonormal, or no lines (points only)."""
-    association: Literal["soft", "hard"] = "soft"
-    """EM soft line-axis weights, or each line anchored to its single best axis."""
-    axis_management: bool = True
-    """Update, merge and delete axes after the first global BA and optimise again."""
 
 
 @dataclass
@@ -88,6 +84,9 @@ class RunConfig:
 
     RENAMED: ClassVar[dict[str, str]] = {
         "local_ba_every": "mapping.refine_every",
+        "variant.association": "axes.association",
+        "variant.axis_management": "axes.update",
+        "axis_min_support_fraction": "axes.min_support_fraction",
         **{
             f"{stage}.seed": "seed"
             for stage in (
@@ -116,7 +115,7 @@ class RunConfig:
     lines: LineInitConfig = field(default_factory=LineInitConfig)
     """Line triangulation (the temporary-vanishing-point stage for structural lines)."""
     axes: AxesConfig = field(default_factory=AxesConfig)
-    """Principal-axis creation, association and update."""
+    """Principal axes: creation, association (soft or hard) and update after BA, every axis setting."""
     ba: BAConfig = field(default_factory=lambda: BAConfig(relative_error_tol=1e-3, anchor_offset=True))
     """Bundle adjustment. Stops when an iteration gains under 0.1% of the cost; anchored lines get the
     sideways offset besides the inverse depth (2n + 2 parameters per axis instead of the paper's n + 2,
@@ -135,8 +134,6 @@ class RunConfig:
     merging, line directions, focal check); no stage has a seed setting of its own."""
     local_ba_window: int = 15
     """Keyframes optimised by each windowed BA."""
-    axis_min_support_fraction: float = 0.03
-    """A new principal axis needs at least this fraction of the structural lines behind it."""
     stray_line_margin: float = 0.2
     """Lines reaching beyond the points' extent (1-99 percentiles) by this fraction of its diagonal are
     dropped after BA."""
@@ -152,8 +149,8 @@ class RunConfig:
 
 PRESETS: dict[str, list[str]] = {
     "full": [],
-    "hard-association": ["variant.association=hard"],
-    "no-axis-management": ["variant.axis_management=false"],
+    "hard-association": ["axes.association=hard"],
+    "no-axis-management": ["axes.update=false"],
     "no-vertical-prior": ["frontend.vp.use_vertical_prior=false"],
     "no-vp-refinement": ["frontend.vp.refine_svd=false"],
     "points-only": ["variant.lines=none"],

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 from papl_mapper.pipelines import checkpoint as ckpt
-from papl_mapper.pipelines.checkpoint import AxisInputs, StageStore
+from papl_mapper.pipelines.checkpoint import StageStore
 from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.pipelines.logfile import close_log, file_log
 from papl_mapper.pipelines.run_outputs import (
@@ -39,38 +39,36 @@ from papl_mapper.pipelines.run_outputs import (
     write_outputs,
     write_unmapped,
 )
-from papl_mapper.pipelines.summary import MappingStats, RecordingInfo, RunSummary
+from papl_mapper.pipelines.summary import (
+    MappingStats,
+    RecordingInfo,
+    RunSummary,
+    per_frame_counts,
+    revisit_row,
+)
 
 from papl_mapper import __version__
-from papl_mapper.backend import global_ba
 from papl_mapper.backend.calibration import check_focal
-from papl_mapper.config import config_to_dict
 from papl_mapper.errors import OutputError, PaplError, UnmappableError
 from papl_mapper.eval.trajectory import Trajectory
 from papl_mapper.frontend import FrontendStats, process
 from papl_mapper.frontend.camera import camera_for_recording
 from papl_mapper.frontend.video import open_recording
-from papl_mapper.geometry.se3 import invert
-from papl_mapper.geometry.triangulation import observation_planes
-from papl_mapper.map import Axes, Map
+from papl_mapper.map import Map
+from papl_mapper.mapping import frames
+from papl_mapper.mapping.adjust import adjust
 from papl_mapper.mapping.assemble import (
     assemble_map,
-    cull_observations,
     drop_stray_lines,
-    rotation_to_z,
-    set_line_states,
-    transform_map,
-    vertical_in_world,
-    vp_directions_w,
+    upright_by_axes,
+    upright_by_vanishing_points,
 )
 from papl_mapper.mapping.culling import CullStats, cull_keyframes
+from papl_mapper.mapping.frames import keyframe_poses
 from papl_mapper.mapping.incremental import Registration, register_keyframes
-from papl_mapper.mapping.lines import LineEstimates, triangulate_lines
-from papl_mapper.mapping.pose_refine import FrameRefiner
-from papl_mapper.mapping.rotation_only import fill_rotation_only
-from papl_mapper.mapping.structure import find_structure, line_weights
-from papl_mapper.mapping.track_completion import complete_tracks
-from papl_mapper.mapping.tracking import track_pnp
+from papl_mapper.mapping.lines import LineEstimates
+from papl_mapper.mapping.structure import structured_map, triangulate_map_lines, update_structure
+from papl_mapper.mapping.track_completion import complete_map
 from papl_mapper.mapping.windowed import WindowedRefiner
 from papl_mapper.outputs import add_outputs
 from papl_mapper.scale import scale_from_config
@@ -266,7 +264,11 @@ def _map_recording(
                 "source_sha256": sha,
                 "camera_source": cam_src.source,
                 "camera_guessed": bool(cam_src.guessed),
-                "variant": config_to_dict(cfg.variant),
+                "variant": {  # the ablation switches, as maps have recorded them
+                    "lines": cfg.variant.lines,
+                    "association": cfg.axes.association,
+                    "axis_management": cfg.axes.update,
+                },
                 "timings_s": timer.times,
             }
         )
@@ -294,7 +296,7 @@ def _map_recording(
             timings_s=timer.times,
             resumed=store.resumed.as_dict() if store.resumed else None,
             checkpoints_written=store.written,
-            per_frame=_per_frame(tracks),
+            per_frame=per_frame_counts(tracks),
         )
         timer.current = "writing outputs"
         write_outputs(out, m, traj, cfg, summary)
@@ -347,20 +349,25 @@ def map_tracks(
         else:
             m, stats = _points_ba(tracks, reg, cfg, timer, progress)
             _save(store, timer, "ba_points", ckpt.write_map, m=m, point_track=tracks.point_track, stats=stats)
-        up = vertical_in_world(tracks, _poses(m))
-        if up is None:
+        upright = upright_by_vanishing_points(tracks, m)
+        if not upright:
             log.warning("no vertical vanishing direction: the map keeps the first camera's orientation")
-        else:
-            transform_map(m, rotation_to_z(up))
         if cfg.variant.lines == "none":
             return m, stats
-        m, axis_inputs = _lines_and_axes(tracks, m, up is not None, cfg, timer)
+        with timer.stage("lines"):
+            # every registered frame's segments, not only the keyframes': more views, longer baselines
+            poses = frame_poses(tracks, m, cfg) if cfg.lines_from_all_frames else keyframe_poses(m)
+            lines = triangulate_map_lines(tracks, poses, cfg.lines, cfg.seed)
+        with timer.stage("axes"):
+            anchored = cfg.variant.lines == "anchored"
+            m, axis_inputs = structured_map(tracks, m, lines, upright, cfg.axes, anchored)
         with timer.stage("ba_full"):
             m, stats.ba = _ba(m, cfg, progress, "BA (points + lines)")
         if cfg.completion.enabled and cfg.completion.after_full_ba:
             # as after the points BA: the better poses confirm more observations; the BA after it also
             # re-applies the error limits to the lines the first full BA placed
-            stats.completion_full_ba = _complete(tracks, m, cfg, timer)
+            with timer.stage("completion"):
+                stats.completion_full_ba = complete_map(tracks, m, cfg.completion).as_dict()
             with timer.stage("ba_full"):
                 m, stats.ba = _ba(m, cfg, progress, "BA (points + lines, completed tracks)")
         _save(
@@ -373,34 +380,16 @@ def map_tracks(
             axis_inputs=axis_inputs,
             stats=stats,
         )
-    if axis_inputs is not None and cfg.variant.axis_management:
-        from papl_mapper.axes import remap_weights, update_axes
-
-        ai = axis_inputs
+    if axis_inputs is not None and cfg.axes.update:
         with timer.stage("axis_update"):
-            upd = update_axes(ai.axes_w, m.axes.directions, ai.state, cfg.axes)
-            w = remap_weights(m.lines.axis_weights, upd.index_map, len(upd.axes))
-            stats.axis_update = upd.messages()
-            m.axes = upd.to_map_axes()
-            fresh = line_weights(
-                ai.obs_dirs_w,
-                ai.obs_line,
-                len(ai.line_track),
-                m.axes.directions,
-                cfg.axes,
-                cfg.variant.association == "hard",
-            )
-            order = np.searchsorted(ai.line_track, m.lines.ids)
-            m.lines.axis_weights = np.where(fresh[order].sum(1, keepdims=True) > 0, fresh[order], w)
-            set_line_states(m)
-        if upd.adopted or upd.deleted or upd.merged:
+            changed, stats.axis_update = update_structure(m, axis_inputs, cfg.axes)
+        if changed:
             with timer.stage("ba_full"):
                 m, stats.ba = _ba(m, cfg, progress, "BA (after axis update)")
     dropped = drop_stray_lines(m, cfg.stray_line_margin)
     if dropped:
         log.info("%d lines reaching outside the points' extent dropped after BA", dropped)
-    if len(m.axes) and m.axes.vertical_index >= 0:
-        transform_map(m, rotation_to_z(_up(m.axes)))
+    upright_by_axes(m)
     return m, stats
 
 
@@ -424,195 +413,38 @@ def _points_ba(
     cull_stats = CullStats()
     with timer.stage("culling"):
         reg = cull_keyframes(tracks, reg, cfg.cull, cull_stats)
-    T_wc = {f: np.linalg.inv(T) for f, T in reg.T_cw.items()}
     stats = MappingStats(
         frames_unregistered=len(reg.lost),
         keyframes_registered=n_registered,
         culling=cull_stats.as_dict(),
-        revisits=[
-            {
-                "frame": rv.frame,
-                "old_frame": rv.old_frame,
-                "tracks_fused": len(rv.pairs),
-                "correction": round(rv.drift, 4),
-                "scale": round(rv.scale, 4),
-            }
-            for rv in reg.revisits
-        ],
+        revisits=[revisit_row(rv) for rv in reg.revisits],
     )
+    T_wc = {f: np.linalg.inv(T) for f, T in reg.T_cw.items()}
     m = assemble_map(tracks, T_wc, reg.points_w, LineEstimates.empty())
     with timer.stage("ba_points"):
         m, stats.ba_points = _ba(m, cfg, progress, "BA (points)")
     if cfg.completion.enabled:
-        stats.completion = _complete(tracks, m, cfg, timer)
+        with timer.stage("completion"):
+            stats.completion = complete_map(tracks, m, cfg.completion).as_dict()
         with timer.stage("ba_points"):
             m, stats.ba_points = _ba(m, cfg, progress, "BA (points, completed tracks)")
     return m, stats
 
 
-def _complete(tracks: Tracks, m: Map, cfg: RunConfig, timer: _Timer) -> dict[str, int]:
-    """Track completion, merging and retriangulation on the BA poses of `m`; its points are replaced
-    in place (keyframes and lines kept) for the BA that follows. Returns the statistics."""
-    with timer.stage("completion"):
-        points_w, done = complete_tracks(tracks, m, cfg.completion)
-        m.points = assemble_map(tracks, _poses(m), points_w, LineEstimates.empty()).points
-    log.info(
-        "tracks: %d merged, %d completed (%d keyframe observations), %d retriangulated",
-        done.merged,
-        done.completed,
-        done.observations_added,
-        done.retriangulated,
-    )
-    return done.as_dict()
-
-
-def _lines_and_axes(
-    tracks: Tracks, m: Map, upright: bool, cfg: RunConfig, timer: _Timer
-) -> tuple[Map, AxisInputs | None]:
-    """Line triangulation on the upright points map, then axes and soft association: the map for the
-    full BA and what the axis update after it needs (None without axes: orthonormal lines)."""
-    with timer.stage("lines"):
-        # every registered frame's segments, not only the keyframes': more views, longer baselines
-        T_by_frame = frame_poses(tracks, m, cfg) if cfg.lines_from_all_frames else _poses(m)
-        sel = np.isin(tracks.line_frame, list(T_by_frame))
-        frames, labels = tracks.line_frame[sel], tracks.line_vp[sel]
-        T_obs = np.stack([T_by_frame[int(f)] for f in frames]) if sel.any() else np.zeros((0, 4, 4))
-        vp_w = vp_directions_w(tracks, frames, labels, T_obs)
-        est = triangulate_lines(
-            tracks.line_track[sel], T_obs, tracks.line_xy[sel], vp_w, tracks.camera.K, cfg.lines, cfg.seed
-        )
-    log.info("%d lines triangulated, %d from vanishing directions", len(est.track), int(est.from_vp.sum()))
-    with timer.stage("axes"):
-        m_points = m
-        if cfg.variant.lines == "orthonormal" or not upright:
-            axis_inputs = None
-            m = assemble_map(tracks, _poses(m_points), _points(m_points), est)
-        else:
-            obs_line = np.searchsorted(est.track, tracks.line_track[sel])
-            known = np.isin(tracks.line_track[sel], est.track)
-            obs_dirs, obs_line = vp_w[known], obs_line[known]
-            d = est.endpoints_w[:, 1] - est.endpoints_w[:, 0]
-            d /= np.linalg.norm(d, axis=1, keepdims=True)
-            xy = tracks.line_xy[sel][known]
-            structure = find_structure(
-                d,
-                est.from_vp,
-                obs_dirs,
-                obs_line,
-                np.array([0.0, 0.0, 1.0]),
-                cfg.axes,
-                hard=cfg.variant.association == "hard",
-                obs_normals_w=observation_planes(T_obs[known], tracks.camera.K, xy)[:, :3],
-                obs_weight=np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1),
-                min_support_fraction=cfg.axis_min_support_fraction,
-            )
-            m = assemble_map(
-                tracks, _poses(m_points), _points(m_points), est, structure.axes, structure.weights
-            )
-            axis_inputs = AxisInputs(
-                structure.axes.directions, structure.state, obs_dirs, obs_line, est.track
-            )
-        m.metadata = dict(m_points.metadata)
-    return m, axis_inputs
-
-
 def _ba(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> tuple[Map, dict[str, Any]]:
-    """Outliers culled, then global BA with a progress bar per LM iteration; the map and statistics."""
-    culled = cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views, 1)
-    log.info("%s: culled %s", title, ", ".join(f"{v} {k}" for k, v in culled.items() if v) or "nothing")
+    """A global BA with its outliers culled first, with a progress bar per LM iteration."""
     with progress(title) as cb:
-        res = global_ba(m, cfg.ba, progress=lambda i, n, cost: cb(i, n, f"cost {cost:.6g}"))
-    log.info(
-        "%s: cost %.6g -> %.6g in %d iterations (%.2f s); rms %s px",
-        title,
-        res.initial_cost,
-        res.final_cost,
-        res.iterations,
-        res.time_s,
-        ", ".join(f"{k} {v:.3f}" for k, v in res.final_rms_px.items()),
-    )
-    if res.dropped:
-        log.info(
-            "%s: left out %s", title, ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in res.dropped.items())
-        )
-    res.map.metadata = dict(m.metadata)
-    stats = {
-        "initial_cost": res.initial_cost,
-        "final_cost": res.final_cost,
-        "iterations": res.iterations,
-        "converged": res.converged,
-        "time_s": round(res.time_s, 3),
-        "rms": {k: {"before": res.initial_rms_px.get(k), "after": v} for k, v in res.final_rms_px.items()},
-        "culled_observations": sum(v for k, v in culled.items() if k.endswith("observations")),
-        "problem": {
-            "variables": res.n_variables,
-            "observations": res.n_observations,
-            "line_parameters": res.line_params,
-            "culled_before": culled,
-            "left_out": res.dropped,
-        },
-    }
-    return res.map, stats
-
-
-def _up(axes: Axes) -> np.ndarray:
-    v = axes.directions[axes.vertical_index]
-    return v if v[2] >= 0 else -v
-
-
-def _poses(m: Map) -> dict[int, np.ndarray]:
-    return {int(k): T for k, T in zip(m.keyframes.ids, m.keyframes.T_wc, strict=True)}
-
-
-def _points(m: Map) -> dict[int, np.ndarray]:
-    return {int(i): x for i, x in zip(m.points.ids, m.points.xyz, strict=True)}
+        return adjust(m, cfg.ba, cfg.max_point_error_px, cfg.max_line_error_px, title, cb)
 
 
 def frame_poses(tracks: Tracks, m: Map, cfg: RunConfig) -> dict[int, np.ndarray]:
-    """T_wc of every frame that has one: keyframes from the map, the others by PnP on its points."""
-    K = tracks.camera.K
-    kf = _poses(m)
-    pid = m.points.ids
-    out: dict[int, np.ndarray] = {}
-    last = None
-    # the map's lines and axes refine each PnP pose (points alone drift in rotation where few)
-    refiner = FrameRefiner.from_map(tracks, m, cfg.mapping.pnp.refine)
-    for f in range(len(tracks)):
-        if f in kf:
-            T_wc = kf[f]
-        else:
-            ids, uv = tracks.points_in(f)
-            idx = np.minimum(np.searchsorted(pid, ids), max(len(pid) - 1, 0))
-            known = pid[idx] == ids if len(pid) else np.zeros(len(ids), bool)
-            guess = np.linalg.inv(last) if last is not None else None
-            X, uv = m.points.xyz[idx[known]], uv[known]
-            res = track_pnp(X, uv, K, guess, cfg.mapping.pnp, seed=cfg.seed)
-            if not res.ok:
-                continue
-            T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])
-            T_wc = np.linalg.inv(T_cw)
-        last = out[f] = T_wc
-    # frames that turn in place where nothing is mapped (a pan at the start) keep an orientation
-    turned = fill_rotation_only(tracks, {f: invert(T) for f, T in out.items()}, cfg.mapping.rotation_only)
-    out.update({f: invert(T) for f, T in turned.items()})
-    return dict(sorted(out.items()))
+    """T_wc of every frame that has one (`mapping.frames.frame_poses` with the run's settings)."""
+    return frames.frame_poses(tracks, m, cfg.mapping.pnp, cfg.mapping.rotation_only, cfg.seed)
 
 
 def frame_trajectory(tracks: Tracks, m: Map, cfg: RunConfig) -> Trajectory:
-    """A pose for every frame that has one (see `frame_poses`), as a timestamped trajectory."""
-    poses = frame_poses(tracks, m, cfg)
-    frames = np.array(sorted(poses), np.int64)
-    T = np.array([poses[int(f)] for f in frames]).reshape(-1, 4, 4)
-    return Trajectory(tracks.timestamp[frames].astype(np.float64), T, "trajectory")
-
-
-def _per_frame(tracks: Tracks) -> dict[str, list[int]]:
-    n = len(tracks)
-    return {
-        "frame": tracks.frame_index.astype(int).tolist(),
-        "points": np.bincount(tracks.point_frame, minlength=n).astype(int).tolist(),
-        "lines": np.bincount(tracks.line_frame, minlength=n).astype(int).tolist(),
-    }
+    """Every frame's pose as a trajectory (`mapping.frames.frame_trajectory` with the run's settings)."""
+    return frames.frame_trajectory(tracks, m, cfg.mapping.pnp, cfg.mapping.rotation_only, cfg.seed)
 
 
 __all__ = [

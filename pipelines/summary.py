@@ -10,7 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from papl_mapper.mapping.revisit import Revisit
+    from papl_mapper.tracks import Tracks
 
 
 @dataclass
@@ -100,3 +106,24 @@ class RunSummary:
             elif value is not None or (f.name == "resumed" and self.status == "mapped"):
                 out[f.name] = value
         return out
+
+
+def revisit_row(rv: Revisit) -> dict[str, Any]:
+    """One closed loop as summary.json lists it."""
+    return {
+        "frame": rv.frame,
+        "old_frame": rv.old_frame,
+        "tracks_fused": len(rv.pairs),
+        "correction": round(rv.drift, 4),
+        "scale": round(rv.scale, 4),
+    }
+
+
+def per_frame_counts(tracks: Tracks) -> dict[str, list[int]]:
+    """Frame index and point and line observations per frame of the tracks."""
+    n = len(tracks)
+    return {
+        "frame": tracks.frame_index.astype(int).tolist(),
+        "points": np.bincount(tracks.point_frame, minlength=n).astype(int).tolist(),
+        "lines": np.bincount(tracks.line_frame, minlength=n).astype(int).tolist(),
+    }

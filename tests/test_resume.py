@@ -25,7 +25,8 @@ import pytest
 from papl_mapper.pipelines import checkpoint as ckpt
 from papl_mapper.pipelines.config import RunConfig
 
-import papl_mapper.axes
+import papl_mapper.mapping.adjust as adjust
+import papl_mapper.mapping.structure as structure
 from papl_mapper.cli import main
 from papl_mapper.map import Map
 from papl_mapper.mapping.incremental import Registration
@@ -117,7 +118,7 @@ class _Boom:
 
 
 def _break_ba(mp: pytest.MonkeyPatch) -> None:
-    mp.setattr(pipeline, "global_ba", _Boom(pipeline.global_ba))  # the first BA after the checkpoint
+    mp.setattr(adjust, "global_ba", _Boom(adjust.global_ba))  # the first BA after the checkpoint
 
 
 # interrupted stage: (what to break, checkpoints there before, the checkpoint a resume continues from);
@@ -127,7 +128,7 @@ CASES = {
     "ba_points": (_break_ba, 2, "registration"),
     "ba_full": (_break_ba, 3, "ba_points"),
     "axis_update": (
-        lambda mp: mp.setattr(papl_mapper.axes, "update_axes", _Boom(papl_mapper.axes.update_axes)),
+        lambda mp: mp.setattr(structure, "update_axes", _Boom(structure.update_axes)),
         4,
         "ba_full",
     ),

@@ -23,8 +23,8 @@ Call sites (`track_pnp` takes the extra terms as keywords; without them it is un
     `dirs_w, sigma = reg_dirs(reg.T_cw)` with one
     `reg_dirs = RegistrationDirections(tracks)` per run, then `track_pnp(..., dirs_w=dirs_w,
     dirs_c=frame_directions(tracks, f), dirs_sigma_deg=sigma)`;
-(b) all-frames trajectory, `pipelines.run.frame_poses`: `refiner = FrameRefiner.from_map(tracks, m,
-    cfg.mapping.pnp.refine)` before the loop, then after a successful PnP
+(b) all-frames trajectory, `mapping.frames.frame_poses`: `refiner = FrameRefiner.from_map(tracks, m,
+    pnp.refine)` before the loop, then after a successful PnP
     `T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])`.
 benchmarks/pose_refine.py monkeypatches both exactly so.
 """
