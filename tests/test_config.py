@@ -93,3 +93,19 @@ def test_run_config_has_one_seed():
     for key in ("mapping.pnp.seed", "frontend.vp.seed", "focal.seed"):
         with pytest.raises(ConfigError, match=f"'{key}' is now 'seed'"):
             load_config(RunConfig, None, [f"{key}=3"])
+
+
+def test_every_axis_setting_is_in_the_axes_section():
+    """Association, the update after BA and the support a new axis needs are `axes.*` (they were
+    spread over `variant` and the top level); the presets set them there and old keys name them."""
+    from papl_mapper.pipelines.config import PRESETS, RunConfig
+
+    cfg = load_config(RunConfig, None, PRESETS["hard-association"] + PRESETS["no-axis-management"])
+    assert (cfg.axes.association, cfg.axes.update, cfg.axes.min_support_fraction) == ("hard", False, 0.03)
+    for old, new in (
+        ("variant.association=hard", "axes.association"),
+        ("variant.axis_management=false", "axes.update"),
+        ("axis_min_support_fraction=0.1", "axes.min_support_fraction"),
+    ):
+        with pytest.raises(ConfigError, match=f"is now '{new}'"):
+            load_config(RunConfig, None, [old])
