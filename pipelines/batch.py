@@ -185,7 +185,7 @@ class Job:
     def config(self):
         """The RunConfig, built as `papl-map run` builds it: config file, then the overrides, then the
         recording's camera, frame range, ground truth and extras."""
-        from papl_mapper.pipelines.config import RunConfig, with_input
+        from papl_mapper.pipelines.config import RunConfig, with_extras, with_input
 
         from papl_mapper.config import load_config
 
@@ -198,13 +198,7 @@ class Job:
             step=self.step,
             max_size=self.max_size,
         )
-        output = dataclasses.replace(
-            cfg.output,
-            gt=Path(self.gt) if self.gt else cfg.output.gt,
-            render=cfg.output.render or self.render,
-            report=cfg.output.report or self.report,
-        )
-        return dataclasses.replace(cfg, output=output)
+        return with_extras(cfg, self.render, self.report, Path(self.gt) if self.gt else None)
 
     def row(self, status: str = "pending", error: str | None = None) -> Row:
         """The batch.json row of this recording before any result."""

@@ -168,3 +168,13 @@ def with_input(config: RunConfig, **given: Any) -> RunConfig:
     if not changes:
         return config
     return dataclasses.replace(config, input=dataclasses.replace(config.input, **changes))
+
+
+def with_extras(
+    config: RunConfig, render: bool = False, report: bool = False, gt: Path | None = None
+) -> RunConfig:
+    """`config` with previews and the report switched on when asked and the ground-truth folder when
+    given (command-line flags, or a batch's recording, over the config file)."""
+    o = config.output
+    output = dataclasses.replace(o, render=o.render or render, report=o.report or report, gt=gt or o.gt)
+    return dataclasses.replace(config, output=output)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -81,7 +80,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from papl_mapper.pipelines.config import PRESETS, RunConfig, with_input
+    from papl_mapper.pipelines.config import PRESETS, RunConfig, with_extras, with_input
     from papl_mapper.pipelines.run import ExtrasInterrupted, RunInterrupted
     from papl_mapper.pipelines.run import run as run_pipeline
 
@@ -100,10 +99,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = with_input(
         cfg, camera=args.camera, start_s=args.start, end_s=args.end, step=args.step, max_size=args.max_size
     )
-    output = {"render": True if args.render else None, "report": True if args.report else None, "gt": args.gt}
-    output = {k: v for k, v in output.items() if v is not None}
-    if output:
-        cfg = dataclasses.replace(cfg, output=dataclasses.replace(cfg.output, **output))
+    cfg = with_extras(cfg, render=args.render, report=args.report, gt=args.gt)
     try:
         result = run_pipeline(args.recording, args.out, cfg, resume=args.resume, progress=progress_bar)
     except RunInterrupted as exc:
