@@ -42,7 +42,7 @@ class MappingStats:
     culling: dict[str, Any] = field(default_factory=dict)
     revisits: list[dict[str, Any]] = field(default_factory=list)
     ba_points: dict[str, Any] | None = None
-    """The last points-only BA (`mapping.adjust.BAStats` as a table)."""
+    """The last points-only BA (the statistics of `mapping.adjust.adjust`)."""
     completion: dict[str, int] | None = None
     """Track completion after the points BA."""
     ba: dict[str, Any] | None = None
