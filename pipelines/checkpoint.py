@@ -362,10 +362,19 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
 # ---- points BA and full BA --------------------------------------------------------------------
 
 
-def write_map(folder: Path, m: Map, point_track: np.ndarray, axis_inputs: AxisInputs | None = None) -> None:
-    """The stage's map, the point track ids as track completion left them, and the axis-update inputs."""
+def write_map(
+    folder: Path,
+    m: Map,
+    point_track: np.ndarray,
+    axis_inputs: AxisInputs | None = None,
+    line_track: np.ndarray | None = None,
+) -> None:
+    """The stage's map, the point (and segment) track ids as track completion left them, and the
+    axis-update inputs."""
     m.save(folder / "map.papl")
     np.save(folder / "point_track.npy", point_track)
+    if line_track is not None:
+        np.save(folder / "line_track.npy", line_track)
     if axis_inputs is not None:
         s = axis_inputs.state
         np.savez(
@@ -385,10 +394,16 @@ def read_map(
     folder: Path, meta: dict[str, Any], tracks: Tracks
 ) -> tuple[Map, MappingStats, AxisInputs | None, np.ndarray]:
     """The map, the statistics so far, the axis-update inputs (None when the stage had none) and the
-    (Kp,) point ids to put into `tracks` (checked against its length)."""
+    (Kp,) point ids to put into `tracks` (checked against its length); segment ids the stage renamed
+    are put into `tracks` here."""
     m = Map.load(folder / "map.papl")
     stats = MappingStats.from_dict(meta["stats"])
     point_track = _check_point_track(np.load(folder / "point_track.npy", allow_pickle=False), tracks)
+    if (folder / "line_track.npy").exists():
+        line_track = np.load(folder / "line_track.npy", allow_pickle=False)
+        if line_track.shape != tracks.line_track.shape:
+            raise ValueError(f"line_track has {line_track.shape} rows, the tracks {tracks.line_track.shape}")
+        tracks.line_track[:] = line_track
     path = folder / "axes.npz"
     if not path.exists():
         return m, stats, None, point_track

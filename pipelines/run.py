@@ -66,6 +66,7 @@ from papl_mapper.mapping.assemble import (
 from papl_mapper.mapping.culling import CullStats, cull_keyframes
 from papl_mapper.mapping.frames import keyframe_poses
 from papl_mapper.mapping.incremental import Registration, register_keyframes
+from papl_mapper.mapping.line_completion import complete_map_lines
 from papl_mapper.mapping.lines import LineEstimates
 from papl_mapper.mapping.structure import structured_map, triangulate_map_lines, update_structure
 from papl_mapper.mapping.track_completion import complete_map
@@ -368,6 +369,8 @@ def map_tracks(
             # re-applies the error limits to the lines the first full BA placed
             with timer.stage("completion"):
                 stats.completion_full_ba = complete_map(tracks, m, cfg.completion).as_dict()
+                if cfg.completion.lines:
+                    stats.line_completion = complete_map_lines(tracks, m, cfg.completion, axis_inputs)
             with timer.stage("ba_full"):
                 m, stats.ba = _ba(m, cfg, progress, "BA (points + lines, completed tracks)")
         _save(
@@ -378,6 +381,7 @@ def map_tracks(
             m=m,
             point_track=tracks.point_track,
             axis_inputs=axis_inputs,
+            line_track=tracks.line_track,
             stats=stats,
         )
     if axis_inputs is not None and cfg.axes.update:

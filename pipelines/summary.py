@@ -49,6 +49,8 @@ class MappingStats:
     """The last full BA over points and lines."""
     completion_full_ba: dict[str, int] | None = None
     """Track completion after the full BA."""
+    line_completion: dict[str, int] | None = None
+    """Segment tracks merged and completed into the map lines after the full BA."""
     axis_update: list[str] | None = None
     """What the axis update after the full BA did, one line per change."""
 

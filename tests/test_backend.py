@@ -300,7 +300,8 @@ def test_anchor_bearing_estimate_avoids_reference_observation_noise():
 
 REF_SHIFT_PX = 4.0  # every anchored line's reference observation moved this far across the segment
 OFFSET_MEDIAN_TOL = 0.15  # median Error_l with the offset (lines seen twice cannot tell which view is off)
-PAPER_BIAS = 3.0  # the paper's ray keeps the shifted observation: mean and median at least this much worse
+PAPER_BIAS = 3.0  # the paper's ray keeps the shifted observation: median at least this much worse ...
+PAPER_BIAS_MEAN = 2.0  # ... and the mean (one line dominates it) at least this much
 
 
 @pytest.mark.parametrize("poses", ["fixed", "noisy"])
@@ -323,8 +324,32 @@ def test_anchor_offset_is_not_biased_by_the_reference_observation(truth, poses):
     e_ours, e_paper = errors(ours.map, truth, align=align), errors(paper.map, truth, align=align)
     assert ours.line_params["anchored"] == 2 * ours.n_variables["lines_anchored"] + 2 * 3  # (r, s) + axes
     assert e_ours["line_error_median"] < OFFSET_MEDIAN_TOL
-    for k in ("line_error", "line_error_median"):
-        assert e_paper[k] > PAPER_BIAS * e_ours[k], k
+    assert e_paper["line_error_median"] > PAPER_BIAS * e_ours["line_error_median"]
+    assert e_paper["line_error"] > PAPER_BIAS_MEAN * e_ours["line_error"]
+
+
+def test_orthonormal_lines_do_not_depend_on_where_the_world_origin_is(truth):
+    """Orthonormal lines are parametrised about their first observing camera: the same problem moved 2 km
+    from the world origin converges like the original (same iterations, same errors), where world-origin
+    parameters would leave their Gauss-Newton steps ill-conditioned by the lever arm."""
+    m = perturb(truth, **START)
+    m.lines.state[:] = LineState.ORTHONORMAL
+    far = copy.deepcopy(m)
+    shift = np.array([1500.0, -1200.0, 600.0])
+    far.keyframes.T_wc[:, :3, 3] += shift
+    far.points.xyz += shift
+    far.lines.endpoints_w += shift
+    cfg = _cfg(max_iterations=50)
+    near_res, far_res = global_ba(m, cfg), global_ba(far, cfg)
+    assert near_res.converged and far_res.converged
+    assert far_res.iterations == near_res.iterations
+    far_map = far_res.map
+    far_map.keyframes.T_wc[:, :3, 3] -= shift
+    far_map.points.xyz -= shift
+    far_map.lines.endpoints_w -= shift
+    e_near, e_far = errors(near_res.map, truth), errors(far_map, truth)
+    for k in ("ate_rmse", "line_error_median", "line_angle_deg"):
+        assert e_far[k] == pytest.approx(e_near[k], rel=1e-3, abs=1e-6), k
 
 
 def test_line_driven_to_infinity_keeps_its_geometry(truth):

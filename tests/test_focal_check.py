@@ -14,6 +14,7 @@ from papl_mapper.backend.calibration import (
     FocalCheckConfig,
     adjust_focal,
     check_focal,
+    focal_sigma_at,
     hfov_deg,
     projection_jacobians,
 )
@@ -142,6 +143,26 @@ def test_straight_walk_is_reported_unobservable(noise_px):
     assert not r.observable and r.plausible and not r.warn
     assert "not observable" in r.message
     assert r.windows and all(w.rel_sigma > FocalCheckConfig().max_rel_sigma for w in r.windows)
+
+
+@pytest.mark.parametrize("motion", ["straight", "turning"])
+def test_screen_matches_the_adjusted_sigma_and_skips_only_flat_windows(motion):
+    """The sigma of f at the map's solution (the screen) is the one the adjustment reports at the truth,
+    so a straight walk is screened out without iterating and a turning one is adjusted as before."""
+    m = room_map(motion, 0.0)
+    obs = (m.points.obs_ids[:, 0], m.points.obs_ids[:, 1], m.points.obs_uv)
+    cfg = FocalCheckConfig()
+    at_truth = focal_sigma_at(m.keyframes.T_wc, m.points.xyz, *obs, m.camera, F_TRUE, cfg)
+    fit = adjust_focal(m.keyframes.T_wc, m.points.xyz, *obs, m.camera, F_TRUE, cfg)
+    assert at_truth == pytest.approx(fit.sigma_f, rel=1e-3)  # noise-free: level 1, same solution
+    r = check_focal(m)
+    screened = at_truth / F_TRUE > cfg.screen_factor * cfg.max_rel_sigma
+    assert screened == (motion == "straight")
+    assert all((w.iterations == 0) == screened for w in r.windows)
+    unscreened = check_focal(m, FocalCheckConfig(screen_factor=np.inf))
+    assert r.observable == unscreened.observable and r.plausible == unscreened.plausible
+    if not screened:
+        assert r.f_estimated == unscreened.f_estimated
 
 
 def test_tiny_map_is_not_checked():

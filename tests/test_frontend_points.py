@@ -127,3 +127,17 @@ def test_keyframes_by_parallax_survival_and_density_cap():
     assert [k for k, f in enumerate(flags) if f] == [0, 6, 9]
     sel = KeyframeSelector(KeyframeConfig(max_gap_frames=7))
     assert [k for k in range(20) if sel.update(ids, base)] == [0, 7, 14]
+
+
+def test_density_cap_holds_dense_video_back_but_not_photos():
+    """The same 20 px of parallax per frame: at 30 fps the cap keeps every third frame; photos a second
+    apart (or a recording read with a large step) each become a keyframe."""
+    cfg = KeyframeConfig(min_parallax_px=10.0, min_gap_frames=3, min_gap_s=0.5)
+    ids = np.arange(100)
+    base = np.random.default_rng(0).uniform(0, 400, (100, 2))
+    for dt, expected in ((1 / 30, [0, 3, 6, 9]), (1.0, list(range(10))), (0.2, [0, 3, 6, 9])):
+        sel = KeyframeSelector(cfg)
+        kfs = [k for k in range(10) if sel.update(ids, base + [20.0 * k, 0.0], t=k * dt)]
+        assert kfs == expected, dt
+    sel = KeyframeSelector(cfg)  # photos without parallax stay non-keyframes
+    assert [k for k in range(5) if sel.update(ids, base, t=float(k))] == [0]

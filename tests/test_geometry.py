@@ -120,6 +120,18 @@ def test_orthonormal_roundtrip_and_jacobian(rng):
     assert phi0 == pytest.approx(np.pi / 2)
 
 
+def test_line_about_a_point_is_the_same_line_and_its_jacobian(rng):
+    """`plucker_about`: a line given about a point is the same world line (both its points stay on it), and
+    going about -o undoes +o; its Jacobian against central differences."""
+    P1, P2, o = rng.normal(size=(3, 3)) * 10
+    L_w = g.plucker_from_endpoints(P1, P2)
+    L_o = g.plucker_from_endpoints(P1 - o, P2 - o)  # the same line with o as the origin
+    np.testing.assert_allclose(g.plucker_about(L_o, o), L_w, atol=1e-9)
+    np.testing.assert_allclose(g.plucker_about(g.plucker_about(L_w, -o), o), L_w, atol=1e-9)
+    _, J = g.plucker_about(L_o, o, jacobian=True)
+    assert_jac(J, num_jac(lambda d: g.plucker_about(L_o + d, o), np.zeros(6)))
+
+
 def test_anchored_roundtrip_and_jacobians(rng):
     T_wr = random_pose(rng)
     ends = g.transform(T_wr, np.array([[-1.0, 0.2, 4.0], [1.0, 0.4, 5.0]]))

@@ -70,6 +70,10 @@ class FocalCheckConfig:
     max_iterations: int = 100
     """Levenberg-Marquardt iterations per window at most (a window of a map built with a 35% wrong f
     needs up to ~90; stopping at 40 left the demo's estimate 3% short of the truth, at 100 0.4%)."""
+    screen_factor: float = 2.0
+    """A window whose f is already this many times less observable than max_rel_sigma at the map's
+    solution is not adjusted: its geometry (how the camera turns) decides what it can pin down, and
+    adjusting it would only creep along the flat direction up to max_iterations."""
     f_prior_rel_sigma: float = 0.3
     """A weak prior on f (this fraction of the used f, 1 sigma) keeps a window solvable when f is not
     observable there; it pulls an estimate of relative sigma s by about (s / this)^2 of the way."""
@@ -77,7 +81,7 @@ class FocalCheckConfig:
 
 @dataclass
 class WindowFit:
-    """One window's adjustment with a free focal length."""
+    """One window's adjustment with a free focal length (iterations 0: screened out, not adjusted)."""
 
     first_keyframe_id: int
     n_keyframes: int
@@ -320,6 +324,23 @@ def _fit_window(
     T = m.keyframes.T_wc[data.kf_rows]
     if np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1).max() <= 0:
         return None  # no translation: no scale gauge, no depths
+    rel = np.einsum("ji,njk->nik", T[0, :3, :3], T[:, :3, :3])
+    fit = WindowFit(
+        first_keyframe_id=int(m.keyframes.ids[data.kf_rows[0]]),
+        n_keyframes=len(data.kf_rows),
+        n_points=len(data.pt_rows),
+        n_observations=len(data.obs_uv),
+        rotation_deg=float(np.degrees(np.max(np.linalg.norm(geo.so3_log(rel), axis=-1)))),
+        f=f_used,
+        rel_sigma=math.inf,
+        iterations=0,
+        rms_px=math.nan,
+    )
+    xyz = m.points.xyz[data.pt_rows]
+    start_sigma = focal_sigma_at(T, xyz, data.obs_pt, data.obs_kf, data.obs_uv, m.camera, f_used, config)
+    if start_sigma / f_used > config.screen_factor * config.max_rel_sigma:
+        fit.rel_sigma = start_sigma / f_used
+        return fit
     res = adjust_focal(
         T,
         m.points.xyz[data.pt_rows],
@@ -331,18 +352,9 @@ def _fit_window(
         config,
         f_start=f_start,
     )
-    rel = np.einsum("ji,njk->nik", T[0, :3, :3], T[:, :3, :3])
-    return WindowFit(
-        first_keyframe_id=int(m.keyframes.ids[data.kf_rows[0]]),
-        n_keyframes=len(data.kf_rows),
-        n_points=len(data.pt_rows),
-        n_observations=len(data.obs_uv),
-        rotation_deg=float(np.degrees(np.max(np.linalg.norm(geo.so3_log(rel), axis=-1)))),
-        f=res.f,
-        rel_sigma=res.sigma_f / res.f if res.f > 0 else math.inf,
-        iterations=res.iterations,
-        rms_px=res.rms_px,
-    )
+    fit.f, fit.iterations, fit.rms_px = res.f, res.iterations, res.rms_px
+    fit.rel_sigma = res.sigma_f / res.f if res.f > 0 else math.inf
+    return fit
 
 
 # ---- adjustment ------------------------------------------------------------------------------------
@@ -385,6 +397,29 @@ def adjust_focal(
     with threadpool_limits(limits=1, user_api="blas"):
         cfg = config or FocalCheckConfig()
         return _adjust_focal(T_wc, xyz, obs_pt, obs_kf, obs_uv, cam, f0, cfg, free_f, f_start)
+
+
+def focal_sigma_at(
+    T_wc: np.ndarray,
+    xyz: np.ndarray,
+    obs_pt: np.ndarray,
+    obs_kf: np.ndarray,
+    obs_uv: np.ndarray,
+    cam: Any,
+    f: float,
+    config: FocalCheckConfig,
+) -> float:
+    """Standard deviation of f (pixels, unscaled by the residual level) from the normal equations at the
+    given poses, points and f: what this window's geometry can pin f down to, before any adjustment."""
+    T = np.asarray(T_wc, np.float64)
+    far = int(np.argmax(np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1)))
+    d0 = float(np.linalg.norm(T[far, :3, 3] - T[0, :3, 3]))
+    pp = np.array([cam.cx, cam.cy])
+    with threadpool_limits(limits=1, user_api="blas"):
+        sys_ = _normal_equations(
+            T, np.asarray(xyz, np.float64), f, pp, obs_pt, obs_kf, obs_uv, config, far, d0, 1e-3 * d0, True, f
+        )
+        return math.sqrt(max(_marginal_f(sys_), 0.0))
 
 
 def _adjust_focal(

@@ -38,6 +38,8 @@ class LineGroup:
     weights: np.ndarray  # (n, A) axis weights in the graph (anchored), zeros otherwise
     offset_dir: np.ndarray  # (n, 3) sideways anchor direction q (z = 0; BAConfig.anchor_offset), else zeros
     obs_bearing: np.ndarray  # (n, 3) bearing of the observed segment midpoint in the reference keyframe
+    origin: np.ndarray  # (n, 3) orthonormal lines: the centre of their first observing keyframe, the point
+    # their (U, phi) are about, so their conditioning does not degrade with distance from the world origin
 
     @classmethod
     def empty(cls, n_axes: int) -> LineGroup:
@@ -52,6 +54,7 @@ class LineGroup:
             np.zeros(0),
             np.zeros((0, 6)),
             np.zeros((0, n_axes)),
+            np.zeros((0, 3)),
             np.zeros((0, 3)),
             np.zeros((0, 3)),
         )
@@ -374,6 +377,9 @@ def _build_lines(
             weights=w[rows] if A else np.zeros((len(rows), 0)),
             offset_dir=q[rows],
             obs_bearing=obs_bearing[rows],
+            origin=T[kf_sel[np.minimum(start[:-1], len(kf_sel) - 1)], :3, 3]
+            if code == 0 and len(kf_sel)
+            else np.zeros((len(rows), 3)),
         )
     axis_used = (groups[KIND_ANCHORED].weights > 0).any(axis=0) if A else np.zeros(0, bool)
     return groups, axis_used

@@ -3,7 +3,8 @@
 A frame becomes a keyframe when, relative to the last keyframe, the median displacement of the
 point tracks both see reaches `min_parallax_px`, or the fraction of the last keyframe's tracks
 still alive drops below `min_survival`; never closer than `min_gap_frames` to the previous
-keyframe (density cap), and at least every `max_gap_frames` frames.
+keyframe unless `min_gap_s` of recording time lies between them (a density cap for dense video, not
+for photos), and at least every `max_gap_frames` frames.
 """
 
 from __future__ import annotations
@@ -22,7 +23,10 @@ class KeyframeConfig:
     min_survival: float = 0.6
     """A keyframe is made when fewer than this fraction of the last keyframe's tracks survive."""
     min_gap_frames: int = 3
-    """Density cap: at least this many processed frames between keyframes."""
+    """Density cap: at least this many processed frames between keyframes ..."""
+    min_gap_s: float = 0.5
+    """... unless this much recording time lies between them: the cap keeps dense video from making
+    keyframes that add no view; photos (or a large --step) half a second apart are never redundant."""
     max_gap_frames: int = 60
     """A keyframe at least every this many processed frames (0 = no limit)."""
     min_common_tracks: int = 12
@@ -37,13 +41,14 @@ class KeyframeSelector:
         self._ids = np.zeros(0, np.int64)
         self._uv = np.zeros((0, 2))
         self._last = None  # counter of the last keyframe
+        self._last_t = -np.inf  # its time, seconds
         self._frame = -1
         self.last_parallax_px = 0.0
         self.last_survival = 1.0
         self.last_reason = ""  # why the last frame became a keyframe ("" if it did not)
 
-    def update(self, ids: np.ndarray, uv: np.ndarray, force: bool = False) -> bool:
-        """Feed one frame's point tracks (ids (N,), pixels (N, 2)); True if it is a keyframe."""
+    def update(self, ids: np.ndarray, uv: np.ndarray, force: bool = False, t: float = 0.0) -> bool:
+        """Feed one frame's point tracks (ids (N,), pixels (N, 2)) and time (s); True if it is a keyframe."""
         self._frame += 1
         cfg = self.config
         ids = np.asarray(ids, np.int64)
@@ -57,7 +62,7 @@ class KeyframeSelector:
             self.last_parallax_px = (
                 float(np.median(np.linalg.norm(uv[ib] - self._uv[ia], axis=1))) if len(common) else 0.0
             )
-            if gap >= cfg.min_gap_frames:
+            if gap >= cfg.min_gap_frames or t - self._last_t >= cfg.min_gap_s:
                 reasons = (
                     ("parallax", self.last_parallax_px >= cfg.min_parallax_px),
                     ("survival", self.last_survival < cfg.min_survival),
@@ -67,7 +72,7 @@ class KeyframeSelector:
                 self.last_reason = next((name for name, hit in reasons if hit), "")
                 is_kf = bool(self.last_reason)
         if is_kf:
-            self._ids, self._uv, self._last = ids.copy(), uv.copy(), self._frame
+            self._ids, self._uv, self._last, self._last_t = ids.copy(), uv.copy(), self._frame, t
         return is_kf
 
     def set_reference(self, ids: np.ndarray, uv: np.ndarray) -> None:

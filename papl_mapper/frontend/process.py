@@ -392,7 +392,7 @@ class _Run:
         else:
             lines.step(segs, self._to_full(points.flow_from), self._to_full(points.flow_to))
         clock.lap("line_tracking")
-        kf = self.selector.update(points.ids, points.uv, force=restart or broken)
+        kf = self.selector.update(points.ids, points.uv, force=restart or broken, t=frame.timestamp_s)
         if kf:
             reasons = self.stats.keyframe_reasons
             reasons[self.selector.last_reason] = reasons.get(self.selector.last_reason, 0) + 1

@@ -95,6 +95,19 @@ def plucker_to_camera(
     return L_c, J_xi, J_L
 
 
+def plucker_about(L: np.ndarray, origin: np.ndarray, jacobian: bool = False):
+    """A line (n, v) given about the point `origin` -> the same line about the world origin:
+    (n + origin x v, v); with `jacobian` also d/dL (..., 6, 6) = [[I, [origin]x], [0, I]]."""
+    n, v = L[..., :3], L[..., 3:]
+    out = np.concatenate([n + np.cross(origin, v), v], axis=-1)
+    if not jacobian:
+        return out
+    J = np.zeros(out.shape + (6,))
+    J[..., :, :] = np.eye(6)
+    J[..., :3, 3:] = skew(origin)
+    return out, J
+
+
 def plucker_to_world(L_c: np.ndarray, T_wc: np.ndarray) -> np.ndarray:
     """Camera line to world frame (inverse of `plucker_to_camera`)."""
     return plucker_to_camera(L_c, invert(T_wc))

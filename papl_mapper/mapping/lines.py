@@ -260,11 +260,11 @@ def dominant_directions(
     D = D / np.linalg.norm(D, axis=1, keepdims=True)
     seeds = D[np.random.default_rng(seed).choice(len(D), min(len(D), sample), replace=False)]
     cos_gate = np.cos(np.radians(gate_deg))
-    near = np.abs(seeds @ seeds.T) > cos_gate  # (s, s)
+    near = (np.abs(seeds @ seeds.T) > cos_gate).astype(np.float32)  # (s, s); counts below are exact
     alive, alive_s = np.ones(len(D), bool), np.ones(len(seeds), bool)
     out: list[np.ndarray] = []
     while len(out) < max_count and alive_s.any():
-        counts = (near & alive_s[None, :]).sum(axis=1) * alive_s
+        counts = (near @ alive_s.astype(np.float32)) * alive_s
         c = seeds[int(np.argmax(counts))]
         for _ in range(3):  # re-centre on the members
             members = alive & (np.abs(D @ c) > cos_gate)

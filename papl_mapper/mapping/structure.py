@@ -135,6 +135,17 @@ class AxisInputs:
     obs_line: np.ndarray  # (K,) index into line_track
     line_track: np.ndarray  # (M,) sorted track ids of the triangulated lines
 
+    def join_lines(self, joined: dict[int, int]) -> None:
+        """Line tracks merged into others (track -> the track it joined): their vanishing-direction
+        observations count for the line they joined when the axis update re-associates the lines."""
+        lt = self.line_track
+        src = np.array([t for t in joined if t in set(lt.tolist())], np.int64)
+        if len(src):
+            dst = np.searchsorted(lt, [joined[int(t)] for t in src])
+            remap = np.arange(len(lt))
+            remap[np.searchsorted(lt, src)] = dst
+            self.obs_line = remap[self.obs_line]
+
 
 @dataclass
 class MapLines:

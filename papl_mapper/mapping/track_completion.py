@@ -52,6 +52,17 @@ class CompletionConfig:
     """Smallest triangulation angle of a retriangulated point."""
     max_reprojection_px: float = 2.0
     """Largest reprojection error of a retriangulated point in any keyframe that sees it."""
+    lines: bool = True
+    """After the full BA, also merge and complete segment tracks into the map lines
+    (`mapping.line_completion`)."""
+    line_max_error_px: float = 1.0
+    """Both endpoints of a joining segment lie this close to the line's projection, in every keyframe
+    (segments are located far more precisely across than points are: 2 px let neighbouring parallel
+    edges join, benchmarks/results/real.json)."""
+    line_min_overlap: float = 0.5
+    """A candidate segment overlaps the projected line segment over at least this fraction of itself."""
+    line_max_hamming: int = 70
+    """Largest LBD distance (of 256 bits) between the closest descriptors of the two tracks."""
 
 
 @dataclass
