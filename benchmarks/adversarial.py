@@ -83,10 +83,10 @@ def main() -> int:
             out = args.cache / "runs" / f"{case}_{variant}"
             shutil.rmtree(out, ignore_errors=True)
             row = {"case": case, "variant": variant, "frames": n_frames}
-            cfg = load_config(RunConfig, None, PRESETS[variant])
+            cfg = load_config(RunConfig, None, [*PRESETS[variant], f"input.camera={folder / 'camera.json'}"])
             t0 = time.perf_counter()
             try:
-                run(_source(folder), out, cfg, camera_file=folder / "camera.json")
+                run(_source(folder), out, cfg)
                 row["map_s"] = time.perf_counter() - t0
                 ev = evaluate(folder, Map.load(out / "map.papl"), out / "trajectory.tum")
                 row.update(posed=ev.n_matched_poses, ate_rel_path=ev.ate_rmse_rel_path, note="")

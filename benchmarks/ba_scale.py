@@ -1,8 +1,9 @@
 """Global BA at scale: ~300 keyframes, ~20,000 points, ~5,000 anchored lines, ~150,000 observations.
 
 Prints a table and writes benchmarks/results/ba_scale.json: seconds per Levenberg-Marquardt iteration,
-the split between linearisation and solve, peak memory, and one linearisation of the line factors with
-one custom factor per line track versus one per observation (the design choice this measures).
+the split between linearisation and solve, peak memory, and one linearisation of the line factors (one
+custom factor per line track; the per-observation alternative is gone, its measurement is in
+benchmarks/RESULTS.md).
 
     .venv/bin/python benchmarks/ba_scale.py [--quick]
 """
@@ -27,7 +28,7 @@ from machine import machine_info
 from papl_mapper.backend import BAConfig, global_ba
 from papl_mapper.backend.ba import _build_graph
 from papl_mapper.backend.problem import build_problem
-from papl_mapper.backend.synthetic import SceneSpec, errors, make_scene, perturb
+from papl_mapper.synth.ba_scenes import SceneSpec, errors, make_scene, perturb
 
 OUT = Path(__file__).resolve().parent / "results" / "ba_scale.json"
 
@@ -40,9 +41,9 @@ def _machine() -> dict:
     return machine_info(processor=platform.processor())
 
 
-def line_linearisation_s(m, granularity: str) -> tuple[float, int]:
+def line_linearisation_s(m) -> tuple[float, int]:
     """Seconds for one linearisation of the line factors only, and the number of line factors."""
-    cfg = BAConfig(line_factor=granularity)
+    cfg = BAConfig()
     pb = build_problem(m, cfg)
     pb.pt_rows = pb.pt_rows[:0]
     pb.pt_obs_pt, pb.pt_obs_kf, pb.pt_obs_uv = pb.pt_obs_pt[:0], pb.pt_obs_kf[:0], pb.pt_obs_uv[:0]
@@ -89,8 +90,7 @@ def main() -> None:
     err = errors(res.map, truth)
     it = np.array(res.iteration_s)
     cpu = np.array(res.iteration_cpu_s)
-    track_s, n_track = line_linearisation_s(start, "track")
-    obs_s, n_obs = line_linearisation_s(start, "observation")
+    track_s, n_track = line_linearisation_s(start)
     figures = {
         **{f"n_{k}": v for k, v in n.items()},
         "lm_iterations": res.iterations,
@@ -112,9 +112,7 @@ def main() -> None:
         "rss_before_scene_mib": rss0,
         "rss_after_scene_mib": rss_scene,
         "line_linearize_track_factors_s": track_s,
-        "line_linearize_observation_factors_s": obs_s,
         "n_line_factors_track": n_track,
-        "n_line_factors_observation": n_obs,
         "initial_cost": res.initial_cost,
         "final_cost": res.final_cost,
         "final_rms_points_px": res.final_rms_px.get("points_px"),
@@ -142,7 +140,6 @@ def main() -> None:
         ),
         ("one linearisation s / one solve s", f"{res.linearize_s:.2f} / {res.solve_s:.2f}"),
         ("line factors, one linearisation: per track s", f"{track_s:.2f} ({n_track} factors)"),
-        ("line factors, one linearisation: per observation s", f"{obs_s:.2f} ({n_obs} factors)"),
         ("peak RSS MiB (after scene generation)", f"{rss_peak:.0f} ({rss_scene:.0f})"),
         (
             "rms px points / lines",

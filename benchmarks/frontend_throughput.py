@@ -40,12 +40,12 @@ from papl_mapper.frontend import (
     process,
     read_camera_file,
 )
-from papl_mapper.frontend.gt import covered_fraction, detection_scores, track_match_precision
 from papl_mapper.frontend.lines import LineConfig, SegmentDetector, match_keyframe_lines
 from papl_mapper.geometry.lines import line_angle_deg
 from papl_mapper.synth.generate import SynthConfig, generate
 from papl_mapper.synth.project import visible_segments
 from papl_mapper.synth.scenes import make_scene
+from papl_mapper.synth.segment_scores import covered_fraction, detection_scores, track_match_precision
 from papl_mapper.trajectory_io import read_tum
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -40,6 +40,8 @@ import papl_mapper.pipelines.run as run_mod
 from machine import machine_info
 from papl_mapper.pipelines.config import RunConfig
 
+import papl_mapper.mapping.adjust as adjust_mod
+import papl_mapper.mapping.structure as structure_mod
 from papl_mapper.config import load_config
 from papl_mapper.eval import evaluate
 from papl_mapper.eval.evaluate import load_ground_truth
@@ -156,14 +158,14 @@ def diagnose(
     cfg = load_config(RunConfig, None, overrides)
     probe: dict = {"cull": []}
     orig_tri, orig_cull, orig_stray, orig_fp = (
-        run_mod.triangulate_lines,
-        run_mod.cull_observations,
+        structure_mod.triangulate_lines,
+        adjust_mod.cull_observations,
         run_mod.drop_stray_lines,
         run_mod.frame_poses,
     )
 
-    def tri(track, T_obs, xy, vp_w, K_, c):
-        est = orig_tri(track, T_obs, xy, vp_w, K_, c)
+    def tri(track, T_obs, xy, vp_w, K_, c, seed=0):
+        est = orig_tri(track, T_obs, xy, vp_w, K_, c, seed)
         probe["tri_in"] = (track.copy(), T_obs.copy(), xy.copy(), vp_w.copy())
         probe["est"] = est
         return est
@@ -186,14 +188,14 @@ def diagnose(
         probe.setdefault("frame_poses", out)  # the first call: the poses lines are triangulated with
         return out
 
-    run_mod.triangulate_lines, run_mod.cull_observations = tri, cull
+    structure_mod.triangulate_lines, adjust_mod.cull_observations = tri, cull
     run_mod.drop_stray_lines, run_mod.frame_poses = stray, fp
     t0 = time.perf_counter()
     try:
         m, _ = run_mod.map_tracks(tracks, cfg)
         traj = run_mod.frame_trajectory(tracks, m, cfg)
     finally:
-        run_mod.triangulate_lines, run_mod.cull_observations = orig_tri, orig_cull
+        structure_mod.triangulate_lines, adjust_mod.cull_observations = orig_tri, orig_cull
         run_mod.drop_stray_lines, run_mod.frame_poses = orig_stray, orig_fp
     t_map = time.perf_counter() - t0
     tum = Path(f"/tmp/line_diag_{folder.name}.tum")

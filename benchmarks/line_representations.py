@@ -31,10 +31,10 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from papl_mapper import geometry as geo  # noqa: E402
 from papl_mapper.backend import BAConfig, global_ba  # noqa: E402
-from papl_mapper.backend.synthetic import SceneSpec, errors, make_scene, perturb  # noqa: E402
 from papl_mapper.geometry.lines import line_parallax_deg  # noqa: E402
 from papl_mapper.geometry.similarity import umeyama  # noqa: E402
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points  # noqa: E402
+from papl_mapper.synth.ba_scenes import SceneSpec, errors, make_scene, perturb  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "line_representations.json"

@@ -52,7 +52,7 @@ def child(args: argparse.Namespace) -> None:
     import contextlib
 
     import papl_mapper.pipelines.run as pipeline
-    from papl_mapper.pipelines.config import RunConfig
+    from papl_mapper.pipelines.config import RunConfig, with_input
 
     from papl_mapper.config import load_config
     from papl_mapper.eval import evaluate
@@ -74,14 +74,12 @@ def child(args: argparse.Namespace) -> None:
     res = pipeline.run(
         rec / "video.mp4",
         args.out,
-        load_config(RunConfig, None, overrides),
-        camera_file=rec / "camera.json",
-        end_s=args.end,
+        with_input(load_config(RunConfig, None, overrides), camera=rec / "camera.json", end_s=args.end),
         resume=args.resume,
     )
     wall = time.perf_counter() - t0
     _, peak = _rss_mib()
-    s = res.summary
+    s = res.summary.to_dict()
     ev = evaluate(rec, res.map, Path(args.out) / "trajectory.tum")
     out = {
         "variant": args.variant,

@@ -24,6 +24,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 OUT = ROOT / "benchmarks" / "RESULTS.md"
+NOTES = ROOT / "benchmarks" / "results" / "notes.md"  # hand-written: why defaults are what they are
 NOISE = ("machine", "commit", "all_runs", "load_average", "loadavg", "date")
 """Keys never shown as headlines (provenance is printed once per file)."""
 
@@ -376,7 +377,7 @@ def provenance(name: str, data: dict) -> str:
     return "; ".join(parts)
 
 
-def build(results: Path = RESULTS) -> str:
+def build(results: Path = RESULTS, notes: Path = NOTES) -> str:
     files = {p.name: json.loads(p.read_text()) for p in sorted(results.glob("*.json"))}
     named = [f for _, area in AREAS for f in area]
     if len(named) != len(set(named)):
@@ -402,6 +403,9 @@ def build(results: Path = RESULTS) -> str:
                 lines = render(data, spec)
                 if lines:
                     out += [""] + lines
+    if notes.exists():  # measurements no results file holds (one-off runs, removed options), with sources
+        out += ["", f"<!-- from benchmarks/results/{notes.name}, written by hand -->", ""]
+        out.append(notes.read_text().rstrip())
     return "\n".join(out) + "\n"
 
 

@@ -500,11 +500,6 @@ def render_views(
     return PreviewResult(paths, list(options.views), scene.notes, backend, times, turntable)
 
 
-def render_previews(m: Map, out_dir: str | os.PathLike, options: PreviewOptions | None = None) -> list[Path]:
-    """Render the preview PNGs of `m` into `out_dir`; returns their paths (see `render_views`)."""
-    return render_views(m, out_dir, options).paths
-
-
 def _check_options(o: PreviewOptions) -> None:
     bad = [v for v in o.views if v not in _VIEW_GEOMETRY]
     if bad:

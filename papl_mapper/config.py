@@ -88,14 +88,18 @@ def _check_number(value: float, key: str) -> float:
     return value
 
 
-def _merge(obj: Any, data: dict[str, Any], prefix: str) -> Any:
+def _merge(obj: Any, data: dict[str, Any], prefix: str, renamed_keys: dict[str, str] | None = None) -> Any:
+    """`obj` updated by `data`; `renamed_keys` (the top-level class's RENAMED, by full dotted key)
+    names where a setting of older config files lives now."""
+    if renamed_keys is None:
+        renamed_keys = getattr(type(obj), "RENAMED", {})
     hints = typing.get_type_hints(type(obj))
     fields = {f.name: f for f in dataclasses.fields(obj)}
     changes = {}
     for key, value in data.items():
         full = f"{prefix}{key}"
         if key not in fields:
-            renamed = getattr(type(obj), "RENAMED", {}).get(key)
+            renamed = renamed_keys.get(full)
             if renamed:
                 raise ConfigError(f"config key {full!r} is now {renamed!r}")
             raise ConfigError(f"unknown config key {full!r}; known: {sorted(fields)}")
@@ -103,7 +107,7 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> Any:
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
                 raise ConfigError(f"config key {full!r} is a section; give a table")
-            changes[key] = _merge(current, value, full + ".")
+            changes[key] = _merge(current, value, full + ".", renamed_keys)
         else:
             changes[key] = _coerce(value, hints[key], full)
     return dataclasses.replace(obj, **changes) if changes else obj

@@ -48,9 +48,8 @@ from papl_mapper.pipelines.batch_inputs import Recording, assign_names, collect
 from papl_mapper.pipelines.logfile import close_log, file_log
 
 from papl_mapper import __version__
-from papl_mapper.atomic import atomic_path, move_into_place
+from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import InputError, PaplError
-from papl_mapper.outputs import add_outputs
 
 log = logging.getLogger(__name__)
 
@@ -184,12 +183,22 @@ class Job:
         return cls(**d)
 
     def config(self):
-        """The RunConfig, built as `papl-map run` builds it: config file, then the overrides."""
-        from papl_mapper.pipelines.config import RunConfig
+        """The RunConfig, built as `papl-map run` builds it: config file, then the overrides, then the
+        recording's camera, frame range, ground truth and extras."""
+        from papl_mapper.pipelines.config import RunConfig, with_extras, with_input
 
         from papl_mapper.config import load_config
 
-        return load_config(RunConfig, Path(self.config_file) if self.config_file else None, self.overrides)
+        cfg = load_config(RunConfig, Path(self.config_file) if self.config_file else None, self.overrides)
+        cfg = with_input(
+            cfg,
+            camera=Path(self.camera) if self.camera else None,
+            start_s=self.start,
+            end_s=self.end,
+            step=self.step,
+            max_size=self.max_size,
+        )
+        return with_extras(cfg, self.render, self.report, Path(self.gt) if self.gt else None)
 
     def row(self, status: str = "pending", error: str | None = None) -> Row:
         """The batch.json row of this recording before any result."""
@@ -325,30 +334,15 @@ def probe(job: Job, cached: dict[str, Any] | None = None) -> dict[str, Any]:
 
 
 def frontend_key(job: Job, cfg, probed: dict[str, Any]) -> str:
-    """The key `pipelines.run.run` gives the frontend checkpoint of this job (JSON text).
-
-    The same fields as run's: the input's SHA-256, the frontend config, the camera fitted to the
-    recording, the frame range and the checkpoint format. tests/test_batch.py checks it names the
-    frontend checkpoint the run wrote.
-    """
+    """The key `pipelines.run.run` gives the frontend checkpoint of this job (JSON text), from the
+    same function. tests/test_batch.py checks it names the frontend checkpoint the run wrote."""
     from papl_mapper.pipelines import checkpoint as ckpt
 
-    from papl_mapper.config import config_to_dict
     from papl_mapper.frontend.camera import camera_for_recording
 
     with _quiet_logs():
-        cam = camera_for_recording(job.camera, probed["width"], probed["height"], cfg.hfov_deg)
-    return json.dumps(
-        {
-            "input": probed["sha256"],
-            "frontend": config_to_dict(cfg.frontend),
-            "camera": cam.camera.to_dict(),
-            "range": [job.start, job.end, job.step, job.max_size],
-            "format": ckpt.FORMAT_VERSION,
-        },
-        sort_keys=True,
-        default=str,
-    )
+        cam = camera_for_recording(cfg.input.camera, probed["width"], probed["height"], cfg.hfov_deg)
+    return ckpt.frontend_key(probed["sha256"], cfg, cam.camera.to_dict())
 
 
 def job_key(job: Job, cfg, probed: dict[str, Any]) -> str:
@@ -403,34 +397,6 @@ def thread_limits(threads: int) -> Iterator[None]:
         cv2.setNumThreads(before)
 
 
-def write_extras(out: Path, m, cfg, gt: Path | None, render: bool, report: bool) -> list[str]:
-    """The exports, eval.json, previews and report.html `papl-map run` writes for these options;
-    returns the files written (relative to `out`)."""
-    files: list[str] = []
-    for fmt in cfg.output.export:
-        from papl_mapper.exporters import export
-
-        files += [os.path.relpath(p, out) for p in export(m, out / f"map.{fmt.strip().lstrip('.')}")]
-    if gt is not None:
-        from papl_mapper.eval import evaluate
-
-        ev = evaluate(gt, m, out / "trajectory.tum")
-        with atomic_path(out / "eval.json") as tmp:
-            tmp.write_text(json.dumps(ev.to_dict(), indent=1))
-        files.append("eval.json")
-    if render or cfg.output.render:
-        from papl_mapper.gui.preview import render_views
-
-        res = render_views(m, out / "previews")
-        files += [os.path.relpath(p, out) for p in res.paths]
-    if report or cfg.output.report:
-        from papl_mapper.gui.report import write_report
-
-        write_report(out, out / "report.html", gt_dir=gt)
-        files.append("report.html")
-    return files
-
-
 def _attempt(state: Path) -> int:
     """Count this start of the job (the attempts file is cleared when the batch submits it)."""
     state.mkdir(parents=True, exist_ok=True)
@@ -455,7 +421,8 @@ def run_job(spec: dict[str, Any]) -> Row:
     """Map one recording into its output folder and return its batch.json row (never raises for a
     failure of the recording: the row says "failed" with the one-line error). The row is also written
     to OUT/.batch/<name>/result.json, so the batch can be resumed from disk."""
-    from papl_mapper.pipelines.run import OUTPUT_FILES, RunInterrupted, run
+    from papl_mapper.pipelines.run import ExtrasInterrupted, RunInterrupted, run
+    from papl_mapper.pipelines.run_outputs import OUTPUT_FILES
 
     job = Job.from_dict(spec)
     t0 = time.perf_counter()
@@ -463,37 +430,20 @@ def run_job(spec: dict[str, Any]) -> Row:
     row = job.row("running")
     row.update(attempts=_attempt(state), host=socket.gethostname(), pid=os.getpid(), threads=job.threads)
     running_log = out / ".checkpoint" / "log.txt"
-    handler: logging.Handler | None = None
     stage = "setting up"
     key = None
     try:
         with thread_limits(job.threads):
             cfg = job.config()
             key, row["probe"] = _key_of(job, cfg)
-            running_log.parent.mkdir(parents=True, exist_ok=True)
-            handler = file_log(running_log, "a" if job.resume else "w")
             stage = "mapping"
-            result = run(
-                job.recording,
-                out,
-                cfg,
-                camera_file=job.camera,
-                start_s=job.start,
-                end_s=job.end,
-                step=job.step,
-                max_size=job.max_size,
-                resume=job.resume,
-            )
-            close_log(handler)
-            move_into_place(running_log, out / "log.txt")
-            handler = file_log(out / "log.txt", "a")
-            stage = "writing the exports, evaluation, previews or report"
-            extras = write_extras(
-                out, result.map, cfg, Path(job.gt) if job.gt else None, job.render, job.report
-            )
-            add_outputs(out, [out / "log.txt", *(out / f for f in extras)])  # manifest.json
-        row.update(_result_fields(result.summary, out))
-        row["files"] = [*OUTPUT_FILES, "log.txt", *extras]
+            result = run(job.recording, out, cfg, resume=job.resume)  # writes the extras and log.txt too
+        row.update(_result_fields(result.summary.to_dict(), out))
+        row["files"] = [
+            *OUTPUT_FILES,
+            "log.txt",
+            *(os.path.relpath(p, out) for p in result.extras.paths(out)),
+        ]
         row["status"] = "ok"
     except RunInterrupted as exc:
         then = (
@@ -502,6 +452,11 @@ def run_job(spec: dict[str, Any]) -> Row:
             else f"rerunning the batch continues after its {exc.resume_from} checkpoint"
         )
         row.update(status="interrupted", error=f"interrupted in {exc.stage}; {then}")
+    except ExtrasInterrupted:
+        row.update(
+            status="interrupted",
+            error="interrupted while writing the exports, evaluation, previews or report",
+        )
     except KeyboardInterrupt:
         row.update(status="interrupted", error=f"interrupted while {stage}")
     except PaplError as exc:
@@ -509,22 +464,32 @@ def run_job(spec: dict[str, Any]) -> Row:
     except MemoryError:
         row.update(status="failed", error=f"out of memory (MemoryError) while {stage}")
     except Exception as exc:  # noqa: BLE001 - any fault of one recording is that recording's, not the batch's
-        where = running_log if handler is not None and running_log.exists() else out / "log.txt"
         log.error("internal error while %s:\n%s", stage, traceback.format_exc())
         row.update(
             status="failed", error=f"internal error while {stage}: {type(exc).__name__}: {_one_line(exc)}"
         )
-        row["log"] = str(where)
-    finally:
-        if handler is not None:
-            if row["status"] != "ok" and row.get("error"):
-                logging.getLogger("papl_mapper").error("batch: %s: %s", row["status"], row["error"])
-            close_log(handler)
+        row["log"] = str(running_log if running_log.exists() else out / "log.txt")
+    if row["status"] != "ok" and row.get("error"):
+        _append_log(
+            running_log if running_log.exists() else out / "log.txt",
+            f"batch: {row['status']}: {row['error']}",
+        )
     row["wall_s"] = round(time.perf_counter() - t0, 3)
     row["peak_rss_mib"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     row["key"] = key
     write_result(state, key, row)
     return row
+
+
+def _append_log(path: Path, message: str) -> None:
+    """An ERROR line at the end of a run's log (when the folder still holds one)."""
+    if not path.parent.is_dir():
+        return
+    handler = file_log(path, "a")
+    try:
+        logging.getLogger("papl_mapper").error("%s", message)
+    finally:
+        close_log(handler)
 
 
 def _result_fields(summary: dict[str, Any], out: Path) -> dict[str, Any]:

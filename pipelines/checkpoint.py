@@ -25,6 +25,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 from papl_mapper.pipelines.config import RunConfig
+from papl_mapper.pipelines.summary import MappingStats
 
 from papl_mapper import __version__
 from papl_mapper.axes.update import AxisState
@@ -33,6 +34,7 @@ from papl_mapper.errors import OutputError
 from papl_mapper.map import Map, json_default
 from papl_mapper.mapping.incremental import Registration
 from papl_mapper.mapping.revisit import Revisit
+from papl_mapper.mapping.structure import AxisInputs
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -52,10 +54,10 @@ TITLES = {
 
 # RunConfig fields a stage does not read. Everything else is part of its key, so a field added to
 # RunConfig later invalidates every checkpoint until it is listed here (safe, never stale).
-# frontend and hfov_deg act through the tracks and the camera, which the frontend key holds.
-_UPSTREAM = {"frontend", "hfov_deg"}
+# input, frontend and hfov_deg act through the tracks and the camera, which the frontend key holds.
+_UPSTREAM = {"input", "frontend", "hfov_deg"}
 _LATER_ONLY = {"output", "focal", "scale", "stray_line_margin"}
-_LINES_AND_AXES = {"lines", "axes", "variant", "axis_min_support_fraction", "lines_from_all_frames"}
+_LINES_AND_AXES = {"lines", "axes", "variant", "lines_from_all_frames"}
 NOT_READ: dict[str, set[str]] = {
     "registration": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES | {"cull", "completion", "max_line_error_px"},
     "ba_points": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES,
@@ -79,6 +81,24 @@ T = TypeVar("T")
 
 def _digest(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def frontend_key(input_sha256: str, config: RunConfig, camera: dict[str, Any]) -> str:
+    """The frontend's key (JSON text): the input's SHA-256, the frontend config and seed, the camera
+    fitted to the recording (`Camera.to_dict`), the frame range and the checkpoint format."""
+    i = config.input
+    return json.dumps(
+        {
+            "input": input_sha256,
+            "frontend": config_to_dict(config.frontend),
+            "seed": config.seed,
+            "camera": camera,
+            "range": [i.start_s, i.end_s, i.step, i.max_size],
+            "format": FORMAT_VERSION,
+        },
+        sort_keys=True,
+        default=str,
+    )
 
 
 def stage_key(previous: str, stage: str, config: RunConfig) -> str:
@@ -342,17 +362,6 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
 # ---- points BA and full BA --------------------------------------------------------------------
 
 
-@dataclass
-class AxisInputs:
-    """What the axis update after the full BA needs from line triangulation and axis creation."""
-
-    axes_w: np.ndarray  # (A, 3) axes as created, before the BA moved them
-    state: AxisState
-    obs_dirs_w: np.ndarray  # (K, 3) world vanishing directions of the line observations
-    obs_line: np.ndarray  # (K,) index into line_track
-    line_track: np.ndarray  # (M,) sorted track ids of the triangulated lines
-
-
 def write_map(
     folder: Path,
     m: Map,
@@ -383,14 +392,12 @@ def write_map(
 
 def read_map(
     folder: Path, meta: dict[str, Any], tracks: Tracks
-) -> tuple[Map, dict[str, Any], AxisInputs | None, np.ndarray]:
+) -> tuple[Map, MappingStats, AxisInputs | None, np.ndarray]:
     """The map, the statistics so far, the axis-update inputs (None when the stage had none) and the
     (Kp,) point ids to put into `tracks` (checked against its length); segment ids the stage renamed
     are put into `tracks` here."""
     m = Map.load(folder / "map.papl")
-    stats = meta["stats"]
-    if not isinstance(stats, dict):
-        raise ValueError("stage.json: stats is not a table")
+    stats = MappingStats.from_dict(meta["stats"])
     point_track = _check_point_track(np.load(folder / "point_track.npy", allow_pickle=False), tracks)
     if (folder / "line_track.npy").exists():
         line_track = np.load(folder / "line_track.npy", allow_pickle=False)

@@ -6,12 +6,16 @@ of overrides applied before the user's own `--config` file and `--set` overrides
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
-from typing import ClassVar, Literal
+from pathlib import Path
+from typing import Any, ClassVar, Literal
 
 from papl_mapper.axes import AxesConfig
 from papl_mapper.backend import BAConfig
 from papl_mapper.backend.calibration import FocalCheckConfig
+from papl_mapper.errors import InputError
 from papl_mapper.frontend import FrontendConfig
 from papl_mapper.mapping.culling import CullConfig
 from papl_mapper.mapping.incremental import IncrementalConfig
@@ -21,15 +25,43 @@ from papl_mapper.scale.config import ScaleConfig
 
 
 @dataclass
+class InputConfig:
+    """Which frames of the recording are mapped, at what size, with which camera: with the recording
+    itself (the run's argument) this fixes the frontend's input, so config.toml reproduces the run."""
+
+    camera: Path | None = None
+    """Intrinsics file: camera.json, OpenCV YAML/JSON, COLMAP cameras.txt, KITTI calib.txt (none: guessed
+    from `hfov_deg`, with a warning)."""
+    start_s: float | None = None
+    """Start time in seconds (none: the first frame)."""
+    end_s: float | None = None
+    """End time in seconds (none: the last frame)."""
+    step: int = 1
+    """Use every step-th frame."""
+    max_size: int | None = None
+    """Downscale so the longer image side is at most this many pixels (none: full size)."""
+
+
+def check_input(i: InputConfig) -> None:
+    """InputError unless the time range is finite, starts at or after 0 and ends after its start, the
+    step is 1 or more and the size at least 16 pixels (named by their command-line flags)."""
+    for name, value in (("--start", i.start_s), ("--end", i.end_s)):
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise InputError(f"{name} {value}: give a finite time in seconds, 0 or more")
+    if i.start_s is not None and i.end_s is not None and i.end_s <= i.start_s:
+        raise InputError(f"--end {i.end_s} s is not after --start {i.start_s} s")
+    if i.step < 1:
+        raise InputError(f"--step {i.step}: give 1 or more")
+    if i.max_size is not None and i.max_size < 16:
+        raise InputError(f"--max-size {i.max_size}: give 16 pixels or more")
+
+
+@dataclass
 class VariantConfig:
-    """Which parts of the method are on (the ablation switches)."""
+    """Which map the method builds (the axes' own switches are in `axes`: association, update)."""
 
     lines: Literal["anchored", "orthonormal", "none"] = "anchored"
     """Anchored structural lines (the method), every line orthonormal, or no lines (points only)."""
-    association: Literal["soft", "hard"] = "soft"
-    """EM soft line-axis weights, or each line anchored to its single best axis."""
-    axis_management: bool = True
-    """Update, merge and delete axes after the first global BA and optimise again."""
 
 
 @dataclass
@@ -42,33 +74,52 @@ class OutputConfig:
     """Write PNG previews into previews/."""
     report: bool = False
     """Write report.html."""
+    gt: Path | None = None
+    """Ground-truth folder: write eval.json and compare the map with it in the report."""
 
 
 @dataclass
 class RunConfig:
     """Everything one run depends on; written beside the outputs as config.toml."""
 
-    RENAMED: ClassVar[dict[str, str]] = {"local_ba_every": "mapping.refine_every"}
-    """Keys of older config files and where their setting lives now (named in the error)."""
+    RENAMED: ClassVar[dict[str, str]] = {
+        "local_ba_every": "mapping.refine_every",
+        "variant.association": "axes.association",
+        "variant.axis_management": "axes.update",
+        "axis_min_support_fraction": "axes.min_support_fraction",
+        **{
+            f"{stage}.seed": "seed"
+            for stage in (
+                "frontend.vp",
+                "frontend.features",
+                "mapping.init",
+                "mapping.pnp",
+                "mapping.relative_pose",
+                "focal",
+            )
+        },
+    }
+    """Keys (full, dotted) of older config files and where their setting lives now (named in the error)."""
 
+    input: InputConfig = field(default_factory=InputConfig)
+    """Frame range, step, size and camera file of the recording."""
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     """Decoding, points, lines, vanishing points, keyframes."""
     mapping: IncrementalConfig = field(default_factory=IncrementalConfig)
     """Initialisation, PnP tracking, point triangulation."""
     cull: CullConfig = field(default_factory=lambda: CullConfig(enabled=False))
-    """Redundant keyframe culling after registration. Off: it halves keyframes and BA memory on a 60 s
-    720p walk (1298 -> 721, 1.88 -> 0.93 GiB) but moved the 10 s Atlanta walk from 0.29% to 0.90% of path."""
+    """Redundant keyframe culling after registration. Off: it halves keyframes and BA memory but costs
+    accuracy (benchmarks/RESULTS.md)."""
     completion: CompletionConfig = field(default_factory=CompletionConfig)
     """Track merging, completion and retriangulation after the points-only BA (then BA again)."""
     lines: LineInitConfig = field(default_factory=LineInitConfig)
     """Line triangulation (the temporary-vanishing-point stage for structural lines)."""
     axes: AxesConfig = field(default_factory=AxesConfig)
-    """Principal-axis creation, association and update."""
+    """Principal axes: creation, association (soft or hard) and update after BA, every axis setting."""
     ba: BAConfig = field(default_factory=lambda: BAConfig(relative_error_tol=1e-3, anchor_offset=True))
-    """Bundle adjustment. Stops when an iteration gains under 0.1% of the cost (3 iterations instead of
-    30 on the demo at the same ATE). Anchored lines get the sideways offset besides the inverse depth
-    (2n + 2 parameters per axis instead of the paper's n + 2, `--preset paper-anchors`): each line then
-    fits all its views instead of passing through one observation's ray (benchmarks/results/real.json)."""
+    """Bundle adjustment. Stops when an iteration gains under 0.1% of the cost; anchored lines get the
+    sideways offset besides the inverse depth (2n + 2 parameters per axis instead of the paper's n + 2,
+    `--preset paper-anchors`), so each line fits all its views (benchmarks/RESULTS.md)."""
     variant: VariantConfig = field(default_factory=VariantConfig)
     """Ablation switches."""
     output: OutputConfig = field(default_factory=OutputConfig)
@@ -78,11 +129,11 @@ class RunConfig:
     scale: ScaleConfig = field(default_factory=ScaleConfig)
     """Metric scale after mapping (markers, camera height); none by default: arbitrary units."""
     seed: int = 0
-    """Seed for every random choice (RANSAC), so the same input gives the same map."""
+    """Seed of every random choice, so the same input gives the same map: the pipeline passes it to
+    each stage that draws (vanishing-point search, feature verification, initialisation, PnP, segment
+    merging, line directions, focal check); no stage has a seed setting of its own."""
     local_ba_window: int = 15
     """Keyframes optimised by each windowed BA."""
-    axis_min_support_fraction: float = 0.03
-    """A new principal axis needs at least this fraction of the structural lines behind it."""
     stray_line_margin: float = 0.2
     """Lines reaching beyond the points' extent (1-99 percentiles) by this fraction of its diagonal are
     dropped after BA."""
@@ -98,8 +149,8 @@ class RunConfig:
 
 PRESETS: dict[str, list[str]] = {
     "full": [],
-    "hard-association": ["variant.association=hard"],
-    "no-axis-management": ["variant.axis_management=false"],
+    "hard-association": ["axes.association=hard"],
+    "no-axis-management": ["axes.update=false"],
     "no-vertical-prior": ["frontend.vp.use_vertical_prior=false"],
     "no-vp-refinement": ["frontend.vp.refine_svd=false"],
     "points-only": ["variant.lines=none"],
@@ -108,3 +159,22 @@ PRESETS: dict[str, list[str]] = {
     "paper-anchors": ["ba.anchor_offset=false"],
     "no-final-completion": ["completion.after_full_ba=false"],
 }
+
+
+def with_input(config: RunConfig, **given: Any) -> RunConfig:
+    """`config` with the `input` fields that are given (not None) replaced: command-line flags (or a
+    batch's recording) over the config file."""
+    changes = {k: v for k, v in given.items() if v is not None}
+    if not changes:
+        return config
+    return dataclasses.replace(config, input=dataclasses.replace(config.input, **changes))
+
+
+def with_extras(
+    config: RunConfig, render: bool = False, report: bool = False, gt: Path | None = None
+) -> RunConfig:
+    """`config` with previews and the report switched on when asked and the ground-truth folder when
+    given (command-line flags, or a batch's recording, over the config file)."""
+    o = config.output
+    output = dataclasses.replace(o, render=o.render or render, report=o.report or report, gt=gt or o.gt)
+    return dataclasses.replace(config, output=output)

@@ -14,9 +14,9 @@ from papl_mapper.backend import BAConfig, global_ba, local_ba  # noqa: E402
 from papl_mapper.backend.ba import _build_graph, _state, _write_back  # noqa: E402
 from papl_mapper.backend.factors import R  # noqa: E402
 from papl_mapper.backend.problem import KIND_ANCHORED, build_problem  # noqa: E402
-from papl_mapper.backend.synthetic import SceneSpec, errors, make_scene, perturb  # noqa: E402
 from papl_mapper.geometry.lines import line_parallax_deg  # noqa: E402
 from papl_mapper.map import LineState  # noqa: E402
+from papl_mapper.synth.ba_scenes import SceneSpec, errors, make_scene, perturb  # noqa: E402
 
 # named tolerances
 ANGLE_TOL_DEG = 1e-9  # exact geometry
@@ -153,30 +153,6 @@ def test_line_with_unobservable_depth_keeps_its_input_geometry(truth):
             geo.plucker_from_endpoints(m.lines.endpoints_w[others, 0], m.lines.endpoints_w[others, 1]),
         )
         assert d_others.max() < 1e-6
-
-
-def test_nearest_reference_keyframe_minimises_depth_over_sine(truth):
-    """Without stored references, "nearest" anchors each line in the view where depth / sin(ray-line angle)
-    is smallest among the qualifying observations; "first" in the earliest one."""
-    m = copy.deepcopy(truth)
-    m.lines.ref_keyframe_id[:] = -1
-    near = build_problem(m, BAConfig(reference_keyframe="nearest")).lines[KIND_ANCHORED]
-    first = build_problem(m, BAConfig()).lines[KIND_ANCHORED]
-    assert len(near) == len(first) > 0
-    K, T = m.camera.K, m.keyframes.T_wc
-    L0 = near.L0
-    differ = 0
-    for i in range(len(near)):
-        s, e = near.obs_start[i], near.obs_start[i + 1]
-        kf = near.obs_kf[s:e]
-        _, r, sin = geo.anchor_from_observation(
-            near.obs_xy[s:e], K, T[kf], np.repeat(L0[i : i + 1], e - s, 0)
-        )
-        score = np.where((r > 0) & (sin > np.sin(np.radians(1.0))), 1.0 / (r * sin), np.inf)
-        assert near.ref_kf[i] == kf[np.argmin(score)]
-        assert first.ref_kf[i] == kf.min()
-        differ += near.ref_kf[i] != first.ref_kf[i]
-    assert differ > 0  # the rule changes something on this scene
 
 
 def test_graduated_local_ba_moves_only_the_window(truth):

@@ -72,3 +72,40 @@ def test_run_config_has_one_source_for_the_windowed_ba_interval():
     assert cfg.mapping.refine_every == 5 and not hasattr(cfg, "local_ba_every")
     with pytest.raises(ConfigError, match="'local_ba_every' is now 'mapping.refine_every'"):
         load_config(RunConfig, None, ["local_ba_every=5"])
+
+
+def test_run_config_has_one_seed():
+    """`seed` is the only seed (the pipeline passes it to every stage); the per-stage seeds of older
+    config files name it."""
+    import dataclasses
+
+    from papl_mapper.pipelines.config import RunConfig
+
+    def seeds(obj, prefix=""):
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                yield from seeds(value, f"{prefix}{f.name}.")
+            elif f.name == "seed":
+                yield prefix + f.name
+
+    assert list(seeds(RunConfig())) == ["seed"]
+    for key in ("mapping.pnp.seed", "frontend.vp.seed", "focal.seed"):
+        with pytest.raises(ConfigError, match=f"'{key}' is now 'seed'"):
+            load_config(RunConfig, None, [f"{key}=3"])
+
+
+def test_every_axis_setting_is_in_the_axes_section():
+    """Association, the update after BA and the support a new axis needs are `axes.*` (they were
+    spread over `variant` and the top level); the presets set them there and old keys name them."""
+    from papl_mapper.pipelines.config import PRESETS, RunConfig
+
+    cfg = load_config(RunConfig, None, PRESETS["hard-association"] + PRESETS["no-axis-management"])
+    assert (cfg.axes.association, cfg.axes.update, cfg.axes.min_support_fraction) == ("hard", False, 0.03)
+    for old, new in (
+        ("variant.association=hard", "axes.association"),
+        ("variant.axis_management=false", "axes.update"),
+        ("axis_min_support_fraction=0.1", "axes.min_support_fraction"),
+    ):
+        with pytest.raises(ConfigError, match=f"is now '{new}'"):
+            load_config(RunConfig, None, [old])

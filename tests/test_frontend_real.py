@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from papl_mapper.frontend.descriptors import hamming, hamming_pairs
-from papl_mapper.frontend.gt import detection_scores
 from papl_mapper.frontend.klt import FlowConfig
 from papl_mapper.frontend.lines import LBD, LineConfig, LineTracker, SegmentDetector, match_keyframe_lines
 from papl_mapper.frontend.motion import relative_rotation, rotation_from_bearings
 from papl_mapper.frontend.points import PointConfig, PointTracker
+from papl_mapper.synth.segment_scores import detection_scores
 
 YUD_NAMES = ("P1020177", "P1020819", "P1020831", "P1020839")
 MIN_YUD_RECALL = 0.4  # hand-labelled segments at least half covered (3 px, 3 deg); measured about 0.5

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from papl_mapper.frontend.gt import assign_to_gt
-from papl_mapper.frontend.gt import covered_fraction as gt_covered
 from papl_mapper.map import Camera
+from papl_mapper.synth.segment_scores import assign_to_gt
+from papl_mapper.synth.segment_scores import covered_fraction as gt_covered
 
 TEX_RES = 0.01  # metres per texel
 
@@ -206,7 +206,7 @@ def walk_poses(n: int, speed_m: float = 0.03, yaw_rate_deg: float = 0.3) -> list
 
 
 def segment_match(det: np.ndarray, gt: np.ndarray, dist_px: float = 3.0, angle_deg: float = 3.0):
-    """For each detection the GT row it lies on, or -1 (see papl_mapper.frontend.gt)."""
+    """For each detection the GT row it lies on, or -1 (see papl_mapper.synth.segment_scores)."""
     return assign_to_gt(det, gt, dist_px, angle_deg)
 
 

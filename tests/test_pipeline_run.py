@@ -74,6 +74,43 @@ def test_resume_reuses_the_frontend(tiny_run, capsys):
     assert len(Map.load(tiny_run / "map.papl").lines) == 0  # the points-only preset took effect
 
 
+def test_config_toml_reproduces_the_run(tmp_path):
+    """config.toml holds every setting, the camera file, frame range, step, size and seed included:
+    `run --config DIR/config.toml VIDEO` without flags maps the recording again to the same bytes."""
+    if not (TINY / "video.mp4").exists():
+        pytest.skip("samples/tiny is not there")
+    video, flags_run, config_run = str(TINY / "video.mp4"), tmp_path / "flags", tmp_path / "config"
+    flags = ["--camera", str(TINY / "camera.json"), "--start", "0.1", "--end", "2.0", "--step", "2"]
+    flags += [
+        "--max-size",
+        "480",
+        "--seed",
+        "3",
+        "--set",
+        "ba.max_iterations=3",
+        "--set",
+        "focal.enabled=false",
+    ]
+    assert main(["-q", "run", video, "--out", str(flags_run), *flags]) == 0
+    assert (
+        main(["-q", "run", video, "--out", str(config_run), "--config", str(flags_run / "config.toml")]) == 0
+    )
+    for name in ("trajectory.tum", "keyframes.tum", "config.toml"):
+        assert (flags_run / name).read_bytes() == (config_run / name).read_bytes(), name
+    a, b = Map.load(flags_run / "map.papl"), Map.load(config_run / "map.papl")
+    assert len(a.keyframes) > 5 and len(a.lines) > 0
+    for part, names in (
+        ("keyframes", ("ids", "T_wc")),
+        ("points", ("ids", "xyz", "obs_ids", "obs_uv")),
+        ("lines", ("ids", "endpoints_w", "axis_weights", "obs_xy")),
+        ("axes", ("directions",)),
+    ):
+        for name in names:
+            np.testing.assert_array_equal(getattr(getattr(a, part), name), getattr(getattr(b, part), name))
+    summary = json.loads((config_run / "summary.json").read_text())
+    assert summary["recording"]["frames"] == 29 and summary["camera"]["width"] == 480
+
+
 def test_bad_inputs(tmp_path, capsys):
     assert main(["run", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err

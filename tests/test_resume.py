@@ -20,11 +20,13 @@ from pathlib import Path
 
 import numpy as np
 import papl_mapper.pipelines.run as pipeline
+import papl_mapper.pipelines.run_outputs as run_outputs
 import pytest
 from papl_mapper.pipelines import checkpoint as ckpt
 from papl_mapper.pipelines.config import RunConfig
 
-import papl_mapper.axes
+import papl_mapper.mapping.adjust as adjust
+import papl_mapper.mapping.structure as structure
 from papl_mapper.cli import main
 from papl_mapper.map import Map
 from papl_mapper.mapping.incremental import Registration
@@ -116,7 +118,7 @@ class _Boom:
 
 
 def _break_ba(mp: pytest.MonkeyPatch) -> None:
-    mp.setattr(pipeline, "global_ba", _Boom(pipeline.global_ba))  # the first BA after the checkpoint
+    mp.setattr(adjust, "global_ba", _Boom(adjust.global_ba))  # the first BA after the checkpoint
 
 
 # interrupted stage: (what to break, checkpoints there before, the checkpoint a resume continues from);
@@ -126,12 +128,12 @@ CASES = {
     "ba_points": (_break_ba, 2, "registration"),
     "ba_full": (_break_ba, 3, "ba_points"),
     "axis_update": (
-        lambda mp: mp.setattr(papl_mapper.axes, "update_axes", _Boom(papl_mapper.axes.update_axes)),
+        lambda mp: mp.setattr(structure, "update_axes", _Boom(structure.update_axes)),
         4,
         "ba_full",
     ),
     "writing outputs": (
-        lambda mp: mp.setattr(pipeline, "write_tum", _Boom(pipeline.write_tum)),
+        lambda mp: mp.setattr(run_outputs, "write_tum", _Boom(run_outputs.write_tum)),
         4,
         "ba_full",
     ),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 
 @dataclass
@@ -39,7 +40,13 @@ class AxesConfig:
     max_new_axes: int = 1
     """Most axes created per call, best (smallest mean angle) first; the paper creates the optimal one."""
 
+    min_support_fraction: float = 0.03
+    """A new axis needs at least this fraction of the map's structural lines behind it (a whole recording
+    has many lines: a handful of misclassified ones must not found an axis)."""
+
     # ---- association -------------------------------------------------------------------------------
+    association: Literal["soft", "hard"] = "soft"
+    """EM soft line-axis weights, or each line anchored to its single best axis (an ablation)."""
     gate_deg: float = 15.0
     """Loose gate: a line whose mean vanishing-direction angle to an axis exceeds this gets weight 0."""
     sigma_deg: float = 2.0
@@ -48,6 +55,8 @@ class AxesConfig:
     """EM iterations (E: weights, M: mixing proportions of the axes)."""
 
     # ---- update ------------------------------------------------------------------------------------
+    update: bool = True
+    """Update, merge and delete axes after the first global BA and optimise again (axis management)."""
     tau_diff_deg: float = 1.0
     """Adopt the direction after BA when it moved more than this (paper tau_diff)."""
     jump_deg: float = 5.0

@@ -20,12 +20,6 @@ def unit_rows(v: np.ndarray, what: str = "directions") -> np.ndarray:
     return v / n[:, None]
 
 
-def align_signs(v: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Flip the rows of v (N,3) so that each has a non-negative dot product with ref (3,)."""
-    s = np.where(v @ ref < 0.0, -1.0, 1.0)
-    return v * s[:, None]
-
-
 def canonical_sign(v: np.ndarray) -> np.ndarray:
     """Flip rows so that their largest-magnitude component is positive (a stable representative)."""
     v = np.asarray(v, dtype=np.float64).reshape(-1, 3)

@@ -135,7 +135,7 @@ def _graduated(
     """BAConfig.huber_k_start: adjust with the wide Huber threshold, then again from that map with huber_k.
     The second stage is a fresh problem (observations re-checked against the new geometry, anchors and the
     axis prior taken from the first stage's result); keeping one problem and only tightening the loss was
-    measured worse (Open-Structure livingroom2, paper form: ATE 0.031 m against 0.012 m)."""
+    worse (benchmarks/RESULTS.md)."""
     wide = adjust(
         m,
         replace(config, huber_k=config.huber_k_start, huber_k_start=None),
@@ -184,8 +184,8 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
     for i in np.flatnonzero(pb.kf_in):
         values.insert(X(i), gtsam.Pose3(T[i]))
     for i in np.flatnonzero(pb.kf_in & ~pose_var):
-        # a tight prior, not NonlinearEqualityPose3: gtsam eliminates hard constraints by QR, which
-        # made a 15-keyframe window 17x slower (24 s vs 1.4 s) for the same solution
+        # a tight prior, not NonlinearEqualityPose3: gtsam eliminates hard constraints by QR, many times
+        # slower for the same solution (benchmarks/RESULTS.md)
         graph.add(gtsam.PriorFactorPose3(X(i), gtsam.Pose3(T[i]), FIXED_POSE_NOISE))
     if pb.gauge is not None and config.optimize_poses:
         a, b = pb.gauge
@@ -240,7 +240,6 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
                 pb.axis_var,
                 config.line_sigma_px,
                 config.huber_k,
-                config.line_factor,
                 uses_offset(config, kind),
             )
             for f in batch.make_factors():

@@ -77,8 +77,6 @@ class FocalCheckConfig:
     f_prior_rel_sigma: float = 0.3
     """A weak prior on f (this fraction of the used f, 1 sigma) keeps a window solvable when f is not
     observable there; it pulls an estimate of relative sigma s by about (s / this)^2 of the way."""
-    seed: int = 0
-    """Seed of the point subsample."""
 
 
 @dataclass
@@ -148,8 +146,9 @@ def hfov_deg(f: float, width: int) -> float:
     return math.degrees(2.0 * math.atan(width / 2.0 / f)) if f > 0 else math.nan
 
 
-def check_focal(m: Map, config: FocalCheckConfig | None = None) -> FocalCheck:
-    """Estimate the focal length from the map's point bundle, window by window, and judge the used one."""
+def check_focal(m: Map, config: FocalCheckConfig | None = None, seed: int = 0) -> FocalCheck:
+    """Estimate the focal length from the map's point bundle, window by window, and judge the used one
+    (`seed` draws the point subsample of a window with too many points)."""
     config = config or FocalCheckConfig()
     t0 = time.perf_counter()
     cam = m.camera
@@ -160,7 +159,7 @@ def check_focal(m: Map, config: FocalCheckConfig | None = None) -> FocalCheck:
     for rows in _choose_windows(m, config):
         # later windows start at the median of the informative ones so far (the prior stays at f_used)
         known = [w.f for w in fits if w.rel_sigma < config.max_rel_sigma]
-        fit = _fit_window(m, rows, f_used, config, float(np.median(known)) if known else None)
+        fit = _fit_window(m, rows, f_used, config, float(np.median(known)) if known else None, seed)
         if fit is not None:
             log.debug(
                 "focal check: window from keyframe %d (%d keyframes, %d points, turning %.1f deg): "
@@ -250,7 +249,9 @@ class _Data:
     obs_uv: np.ndarray  # (K, 2) undistorted pixels
 
 
-def _select(m: Map, kf_rows: np.ndarray, config: FocalCheckConfig, max_error_px: float) -> _Data | None:
+def _select(
+    m: Map, kf_rows: np.ndarray, config: FocalCheckConfig, max_error_px: float, seed: int
+) -> _Data | None:
     """Observations by the keyframes `kf_rows` of points seen from >= min_views of them, in front and
     reprojecting within max_error_px with the map's camera; None when too little is left."""
     pts, kfs = m.points, m.keyframes
@@ -269,7 +270,7 @@ def _select(m: Map, kf_rows: np.ndarray, config: FocalCheckConfig, max_error_px:
     views = np.bincount(pairs[:, 0], minlength=len(pts))
     keep = np.flatnonzero(views >= config.min_views)
     if len(keep) > config.max_points_per_window:
-        rng = np.random.default_rng(config.seed)
+        rng = np.random.default_rng(seed)
         order = np.lexsort((rng.random(len(keep)), -views[keep]))  # most views first, random ties
         keep = np.sort(keep[order[: config.max_points_per_window]])
     sel = np.isin(p_row, keep)
@@ -310,9 +311,14 @@ def _reprojection_px(
 
 
 def _fit_window(
-    m: Map, rows: np.ndarray, f_used: float, config: FocalCheckConfig, f_start: float | None = None
+    m: Map,
+    rows: np.ndarray,
+    f_used: float,
+    config: FocalCheckConfig,
+    f_start: float | None = None,
+    seed: int = 0,
 ) -> WindowFit | None:
-    data = _select(m, rows, config, config.max_error_px)
+    data = _select(m, rows, config, config.max_error_px, seed)
     if data is None:
         return None
     T = m.keyframes.T_wc[data.kf_rows]

@@ -49,8 +49,6 @@ class BAConfig:
     """Line observations shorter than this are dropped (zero-length segments have no direction)."""
     min_ray_angle_deg: float = 1.0
     """Line observations whose 3D line is within this angle of the viewing ray are dropped."""
-    line_factor: Literal["track", "observation"] = "track"
-    """One custom factor per line track (vectorised) or one per observation (more Python calls)."""
     structural_lines: Literal["anchored", "fixed_direction"] = "anchored"
     """How ANCHORED lines are optimised: the paper's 3-parameter form (shared axis + inverse depth), or the
     2-parameter baseline of Xu et al. 2022 (direction held at its axis, 2-dof position; for comparisons)."""
@@ -59,14 +57,6 @@ class BAConfig:
     (the paper; unbiased, but that one observation's noise is never averaged out), or through the point of
     the current line estimate nearest that midpoint (as good as the estimate, e.g. a multi-view
     triangulation; a poor estimate's error stays)."""
-    reference_keyframe: Literal["first", "nearest"] = "first"
-    """For lines without a usable stored reference keyframe: the first observing keyframe that qualifies, or
-    the one where the anchor ray pins the line tightest (smallest depth / sin of the ray-line angle, so one
-    pixel of that observation's noise moves the line least; matters for the paper's n + 2 form). Measured on
-    three seeded fixed-pose scenes (1 px noise, n + 2 form) the line error went 0.063 -> 0.054, 0.154 -> 0.261
-    and 0.048 -> 0.040; Open-Structure paper form (wide Huber, 1 deg parallax rule): livingroom2 Error_l
-    0.296 -> 0.291 at equal ATE, structure_texture_far ATE 0.0066 -> 0.0126 m. No consistent gain, hence
-    not the default."""
     anchor_offset: bool = False
     """Give anchored lines a second parameter: the anchor's sideways shift across the line in the reference
     image (pixels), besides the paper's inverse depth. The paper's form (False: n + 2 parameters per axis)

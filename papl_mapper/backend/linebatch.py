@@ -41,7 +41,6 @@ class LineBatch:
         axis_var: np.ndarray,
         sigma_px: float,
         huber_k: float,
-        granularity: str = "track",
         offset: bool = False,
     ) -> None:
         self.kind, self.grp, self.K = kind, grp, K
@@ -56,11 +55,11 @@ class LineBatch:
         self.has_jac = False
         self.n_evaluations = 0
         self.factors: list[gtsam.CustomFactor] = []
-        self._layout(granularity)
+        self._layout()
 
     # ---- layout: units, factors, keys and Jacobian blocks ------------------------------------
 
-    def _layout(self, granularity: str) -> None:
+    def _layout(self) -> None:
         grp, kind = self.grp, self.kind
         u_line, u_axis, u_obs, u_w, u_row = [], [], [], [], []
         offs: dict[str, list[int]] = {name: [] for name in ("p0", "p1", "ref", "obs")}
@@ -76,8 +75,7 @@ class LineBatch:
                 sqrt_w = np.sqrt(grp.weights[i, axes])
             else:
                 axes, sqrt_w = np.array([-1]), np.ones(1)
-            groups = [list(range(s, e))] if granularity == "track" else [[o] for o in range(s, e)]
-            for obs_list in groups:
+            for obs_list in [list(range(s, e))]:
                 kl = _KeyList()
                 add = kl.add
                 if kind == KIND_ORTHO:
@@ -143,7 +141,7 @@ class LineBatch:
     # ---- factors -----------------------------------------------------------------------------
 
     def make_factors(self) -> list[gtsam.CustomFactor]:
-        """One gtsam.CustomFactor per track (or observation) with a unit noise model."""
+        """One gtsam.CustomFactor per track with a unit noise model."""
         out = []
         for f, keys in enumerate(self.f_keys):
             u0, u1 = self.f_units[f]

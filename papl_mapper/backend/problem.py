@@ -328,13 +328,7 @@ def _build_lines(
     cand &= sin_all > np.sin(np.radians(config.min_ray_angle_deg))
     prefer = (o_kf == stored[o_row]).astype(np.int64)
     # best candidate per line: qualifying first, then the stored keyframe, then the earliest observation
-    # (reference_keyframe "first") or the one whose anchor ray pins the line tightest: the smallest
-    # depth / sin(ray-line angle), i.e. the least metric error per pixel of the anchor ("nearest")
-    tie = np.arange(len(o_row), dtype=np.float64)
-    if config.reference_keyframe == "nearest":
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tie = np.where(cand, 1.0 / (r_all * np.maximum(sin_all, 1e-12)), np.inf)
-    order = np.lexsort((tie, -prefer, ~cand, o_row))
+    order = np.lexsort((np.arange(len(o_row)), -prefer, ~cand, o_row))
     first = np.ones(len(order), bool)
     first[1:] = o_row[order][1:] != o_row[order][:-1]
     pick = order[first]

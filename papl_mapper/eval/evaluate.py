@@ -463,14 +463,6 @@ def resolve_result(result: str | os.PathLike) -> tuple[Map, Path | None]:
     return Map.load(path), None
 
 
-def evaluate_path(
-    gt_dir: str | os.PathLike, result: str | os.PathLike, config: EvalConfig | None = None
-) -> EvalResult:
-    """`evaluate` on a run folder or a .papl file."""
-    m, tum = resolve_result(result)
-    return evaluate(Path(gt_dir), m, tum, config)
-
-
 def write_json(result: EvalResult, path: str | os.PathLike) -> Path:
     """Write `result.to_dict()` as JSON atomically."""
     path = Path(path)

@@ -62,8 +62,6 @@ class FeatureConfig:
     min_inlier_ratio: float = 0.25
     """...and at least this fraction of its matches (COLMAP's two-view default): a pair of look-alike
     views gathers many matches of which a few fit some geometry by chance."""
-    seed: int = 0
-    """Seed of OpenCV's RANSAC."""
 
 
 @dataclass
@@ -264,9 +262,10 @@ def feature_tracks(
     first_id: int,
     cfg: FeatureConfig,
     workers: int = 1,
+    seed: int = 0,
 ) -> FeatureTracks:
     """Match the keyframes' SIFT keypoints across weak KLT links and chain them into tracks; `workers`
-    threads match the keyframe pairs."""
+    threads match the keyframe pairs; `seed` seeds the verification's RANSAC."""
     empty = FeatureTracks(
         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
     )
@@ -294,7 +293,7 @@ def feature_tracks(
         m, dist = match_pair(_unit(node_sift[sa]), _unit(node_sift[sb]), cfg.ratio)
         if len(m) < cfg.min_inliers:
             return None
-        ok, E = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], K, cfg.ransac_threshold_px, cfg.seed)
+        ok, E = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], K, cfg.ransac_threshold_px, seed)
         if E is None or ok.sum() < max(cfg.min_inliers, cfg.min_inlier_ratio * len(m)):
             return None
         geometry = (int(keyframes[pair[0]]), int(keyframes[pair[1]]), E)

@@ -166,8 +166,10 @@ def process(
     config: FrontendConfig | None = None,
     progress: ProgressCallback | None = None,
     stats: FrontendStats | None = None,
+    seed: int = 0,
 ) -> Tracks:
-    """Observations of a recording: point and segment tracks (undistorted pixels), keyframes, VPs.
+    """Observations of a recording: point and segment tracks (undistorted pixels), keyframes, VPs
+    (`seed` seeds the random choices: vanishing-point search, feature verification).
 
     `camera` is fitted to the recording's (possibly downscaled) size: scaled when the aspect ratio
     matches, InputError otherwise. Raises InputError when every frame is textureless.
@@ -182,7 +184,7 @@ def process(
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="segments") if config.parallel else None
     vp_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vanishing") if config.vp_thread else None
     features_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sift") if config.parallel else None
-    run = _Run(recording, camera, config, stats, vp_pool, features_pool)
+    run = _Run(recording, camera, config, stats, vp_pool, features_pool, seed)
     try:
         for done, frame in enumerate(recording, 1):
             message = run.frame(frame, pool)
@@ -233,9 +235,10 @@ class _Run:
         stats: FrontendStats,
         vp_pool: ThreadPoolExecutor | None = None,
         features_pool: ThreadPoolExecutor | None = None,
+        seed: int = 0,
     ):
         w, h = recording.width, recording.height
-        self.recording, self.config, self.stats = recording, config, stats
+        self.recording, self.config, self.stats, self.seed = recording, config, stats, seed
         self.und = Undistorter(camera)
         s = min(1.0, config.work_max_size / max(w, h))
         self.work_size = (max(1, round(w * s)), max(1, round(h * s)))
@@ -269,6 +272,7 @@ class _Run:
             VPTrackingConfig(
                 config.vp, config.vertical_init_frames, config.vp_stride, config.report_tracked_vertical
             ),
+            seed,
         )
         self.vp_pool = vp_pool
         self.vp_jobs: deque[Future] = deque()
@@ -452,6 +456,7 @@ class _Run:
             int(track.max(initial=-1)) + 1,
             self.config.features,
             workers=2 if self.config.parallel else 1,
+            seed=self.seed,
         )
         self.stats.seconds["matching"] = time.perf_counter() - t0
         self.stats.feature_tracks = len(np.unique(ft.track))

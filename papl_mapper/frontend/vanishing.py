@@ -90,8 +90,6 @@ class VPConfig:
     measured directly), the second Atlanta horizontal on the segments the first one leaves."""
     support_angle_deg: float = 3.0
     """Angle scale of the "support" score (image angle between a segment and the VP direction)."""
-    seed: int = 0
-    """Seed of the random segment pairs of the 2-line search."""
 
 
 @dataclass
@@ -312,12 +310,14 @@ def _svd_direction(s: _Segments, idx: np.ndarray, d0: np.ndarray, robust_w: np.n
 # ---- estimation ----------------------------------------------------------------------------------------
 
 
-def _two_line_search(s: _Segments, grid: _SphereGrid, config: VPConfig) -> tuple[np.ndarray, float]:
+def _two_line_search(
+    s: _Segments, grid: _SphereGrid, config: VPConfig, seed: int
+) -> tuple[np.ndarray, float]:
     """Lu et al.'s Manhattan search: (3, 3) orthogonal directions with the best summed grid score."""
     idx = np.flatnonzero(s.valid)
     if len(idx) < 2:
         raise GeometryError(f"vanishing points: {len(idx)} usable segments (need at least 2 long ones)")
-    rng = np.random.default_rng(config.seed)
+    rng = np.random.default_rng(seed)
     p = s.length[idx] / s.length[idx].sum()
     a = rng.choice(idx, size=config.n_first_hypotheses, p=p)
     b = rng.choice(idx, size=config.n_first_hypotheses, p=p)
@@ -460,14 +460,18 @@ def _finish(
 
 
 def estimate_frame(
-    segments: np.ndarray, K: np.ndarray, vertical_c: np.ndarray | None = None, config: VPConfig | None = None
+    segments: np.ndarray,
+    K: np.ndarray,
+    vertical_c: np.ndarray | None = None,
+    config: VPConfig | None = None,
+    seed: int = 0,
 ) -> VPResult:
     """Vanishing directions of one frame from its undistorted segments (S, 4) in pixels.
 
     With `vertical_c` (and config.use_vertical_prior): the vertical plus the best two horizontals of
     the 360 proposals about it; otherwise Lu et al.'s Manhattan 2-line search, its vertical being the
-    direction nearest the image y axis when within config.vertical_max_tilt_deg.
-    Raises GeometryError when fewer than two usable segments remain.
+    direction nearest the image y axis when within config.vertical_max_tilt_deg (its random segment
+    pairs drawn with `seed`). Raises GeometryError when fewer than two usable segments remain.
     """
     config = config or VPConfig()
     s = _prepare(segments, K, config)
@@ -491,14 +495,14 @@ def estimate_frame(
         method = "vertical-prior-manhattan" if config.manhattan_only else "vertical-prior-atlanta"
         return _finish(s, K, dirs, scores, 0, fixed, config, method, prior=True)
     grid = _SphereGrid(s, config)
-    triple, _ = _two_line_search(s, grid, config)
+    triple, _ = _two_line_search(s, grid, config, seed)
     vi = _pick_vertical(triple, config)
     scores = [float(x) for x in grid.score(triple)]
     return _finish(s, K, list(triple), scores, vi, set(), config, "two-line-manhattan", prior=False)
 
 
 def estimate_vertical(
-    segments_list: list[np.ndarray], K: np.ndarray, config: VPConfig | None = None
+    segments_list: list[np.ndarray], K: np.ndarray, config: VPConfig | None = None, seed: int = 0
 ) -> np.ndarray:
     """Camera-frame unit vertical (pointing up, -y for an upright camera) from early frames.
 
@@ -510,7 +514,7 @@ def estimate_vertical(
     found = []
     for segs in segments_list:
         try:
-            res = estimate_frame(segs, K, None, config)
+            res = estimate_frame(segs, K, None, config, seed)
         except GeometryError as exc:
             log.debug("vertical: frame skipped (%s)", exc)
             continue

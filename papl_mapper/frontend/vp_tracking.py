@@ -56,9 +56,10 @@ class _FrameIn:
 class VanishingTracker:
     """Feed frames in order with `add`; `result` gives labels, directions and the vertical's index."""
 
-    def __init__(self, K: np.ndarray, config: VPTrackingConfig):
+    def __init__(self, K: np.ndarray, config: VPTrackingConfig, seed: int = 0):
         self.K = np.asarray(K, np.float64)
         self.config = config
+        self.seed = seed  # of the 2-line searches without a vertical prior
         self.vertical: np.ndarray | None = None
         self.vertical_source = ""  # "initialised", "initialised-unaligned" or "per-frame"
         self.failures = 0  # frames without vanishing directions
@@ -111,7 +112,7 @@ class VanishingTracker:
             self.vertical_source = "initialised"
         else:  # no rotation chain (e.g. tracking broke at once): the frames' verticals averaged as they are
             try:
-                vertical = estimate_vertical([f.segs for f in frames], self.K, cfg.vp)
+                vertical = estimate_vertical([f.segs for f in frames], self.K, cfg.vp, self.seed)
                 self.vertical_source = "initialised-unaligned"
             except GeometryError as exc:
                 log.warning("vanishing points: %s; estimating each frame without a vertical prior", exc)
@@ -138,7 +139,7 @@ class VanishingTracker:
                 R_f0 = None if R is None else R @ R_f0
             chain.append(R_f0)
             try:
-                res = estimate_frame(frame.segs, self.K, None, cfg)
+                res = estimate_frame(frame.segs, self.K, None, cfg, self.seed)
             except GeometryError:
                 continue
             if res.vertical_c is not None:
@@ -172,7 +173,7 @@ class VanishingTracker:
                 self.rotations += 1
         self._prev = frame
         try:
-            res = estimate_frame(frame.segs, self.K, self.vertical, cfg.vp)
+            res = estimate_frame(frame.segs, self.K, self.vertical, cfg.vp, self.seed)
         except GeometryError as exc:
             log.debug("frame row %d: no vanishing directions (%s)", f, exc)
             self.failures += 1

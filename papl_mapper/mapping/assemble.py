@@ -293,3 +293,21 @@ def set_line_states(m: Map) -> None:
         ln.inverse_depth[i] = 1.0 / max(float(z), 1e-12)
     ln.ref_keyframe_id[~anchored] = -1
     ln.inverse_depth[~anchored] = np.nan
+
+
+def upright_by_vanishing_points(tracks: Tracks, m: Map) -> bool:
+    """Turn `m` (in place) so that the world vertical its keyframes' vertical vanishing directions agree
+    on is +Z; False (the map keeps the first camera's orientation) when there is none."""
+    poses = {int(k): T for k, T in zip(m.keyframes.ids, m.keyframes.T_wc, strict=True)}
+    up = vertical_in_world(tracks, poses)
+    if up is None:
+        return False
+    transform_map(m, rotation_to_z(up))
+    return True
+
+
+def upright_by_axes(m: Map) -> None:
+    """Turn `m` (in place) so that its vertical principal axis is +Z (nothing when it has none)."""
+    if len(m.axes) and m.axes.vertical_index >= 0:
+        v = m.axes.directions[m.axes.vertical_index]
+        transform_map(m, rotation_to_z(v if v[2] >= 0 else -v))

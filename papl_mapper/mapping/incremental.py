@@ -164,7 +164,9 @@ def _ray_angle_deg(point_index: np.ndarray, centres: np.ndarray, X: np.ndarray, 
     return 2.0 * np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
-def _initialise(tracks: Tracks, keyframes: np.ndarray, cfg: IncrementalConfig) -> Registration | None:
+def _initialise(
+    tracks: Tracks, keyframes: np.ndarray, cfg: IncrementalConfig, seed: int = 0
+) -> Registration | None:
     """Two-view start from the first keyframe that has a usable partner, with its best partner.
 
     An offline mapper can afford to compare partners: among those within `init_search_keyframes`,
@@ -177,7 +179,7 @@ def _initialise(tracks: Tracks, keyframes: np.ndarray, cfg: IncrementalConfig) -
         for b in range(a + 1, min(len(keyframes), a + 1 + cfg.init_search_keyframes)):
             f1, f2 = int(keyframes[a]), int(keyframes[b])
             common, uv1, uv2 = _common(tracks, f1, f2)
-            res = initialise_two_view(_normalised(uv1, K), _normalised(uv2, K), K[0, 0], cfg.init)
+            res = initialise_two_view(_normalised(uv1, K), _normalised(uv2, K), K[0, 0], cfg.init, seed)
             if not res.ok:
                 log.debug("init %d-%d: %s", f1, f2, res.reason)
                 continue
@@ -205,6 +207,7 @@ def register_keyframes(
     config: IncrementalConfig | None = None,
     progress: ProgressCallback | None = None,
     refine: Callable[[Registration], None] | None = None,
+    seed: int = 0,
 ) -> Registration:
     """Register the frames of `tracks`; where tracking is lost, map on in a new segment and merge it.
 
@@ -216,6 +219,7 @@ def register_keyframes(
     left out (their frames are `lost`). `refine(reg)` runs after every `refine_every` keyframes.
     Revisits of places mapped long before close loops and rename the later point tracks to the
     earlier ones in `tracks.point_track` (in place), so later stages see one track per 3D point.
+    `seed` seeds every random choice (the RANSACs of initialisation, PnP and segment merging).
     """
     cfg = config or IncrementalConfig()
     tracks.validate()
@@ -224,10 +228,10 @@ def register_keyframes(
     segments: list[Registration] = []
     start = 0
     while start < len(tracks):
-        reg = _initialise(tracks, keyframes[keyframes >= start], cfg)
+        reg = _initialise(tracks, keyframes[keyframes >= start], cfg, seed)
         if reg is None:
             break
-        end = _extend(tracks, reg, start, cfg, progress, refine, index if cfg.revisit.enabled else None)
+        end = _extend(tracks, reg, start, cfg, progress, refine, index if cfg.revisit.enabled else None, seed)
         segments.append(reg)
         start = end + 1
     if not segments:
@@ -252,7 +256,7 @@ def register_keyframes(
             f"could not initialise from {len(keyframes)} keyframes: too little parallax or too few "
             "tracked points; try a recording with sideways or forward motion, or a lower --step"
         )
-    reg = _merge_segments(segments, cfg, index)
+    reg = _merge_segments(segments, cfg, index, seed)
     registered = set(reg.T_cw) | set(reg.T_cw_frames)
     reg.lost = [f for f in range(len(tracks)) if f not in registered]
     reg.frames.sort()
@@ -267,6 +271,7 @@ def _extend(
     progress: ProgressCallback | None,
     refine: Callable[[Registration], None] | None,
     index: TrackIndex | None = None,
+    seed: int = 0,
 ) -> int:
     """Register frames after the initial pair until tracking is lost; returns the last frame tried."""
     f1, f2 = reg.init_frames
@@ -285,11 +290,11 @@ def _extend(
             last_T = reg.T_cw[f2]
             last_keyframe = f2
             continue
-        res, n_tracks = _pnp(tracks, reg, f, last_T, cfg, dirs, lines)
+        res, n_tracks = _pnp(tracks, reg, f, last_T, cfg, dirs, lines, seed)
         if (res is None or not res.ok) and cfg.relative_pose.enabled:
             # too few mapped points (a wide baseline): the step from the last keyframe, scaled by them
             rel = register_relative(
-                tracks, f, last_keyframe, reg.T_cw[last_keyframe], reg.points_w, cfg.relative_pose
+                tracks, f, last_keyframe, reg.T_cw[last_keyframe], reg.points_w, cfg.relative_pose, seed
             )
             res = rel if rel.ok else res
         if res is None or not res.ok:
@@ -315,7 +320,7 @@ def _extend(
             added = _triangulate_new(tracks, rows, reg, f, cfg)
             log.debug("keyframe %d: %s, %d new points", f, res.reason, added)
             if index is not None and tracks.is_keyframe[f]:
-                rv = find_revisit(tracks, reg.points_w, reg.T_cw, f, index, cfg.revisit)
+                rv = find_revisit(tracks, reg.points_w, reg.T_cw, f, index, cfg.revisit, seed)
                 if rv is not None and close_loop(tracks, reg.points_w, reg.T_cw, reg.T_cw_frames, rv, index):
                     reg.revisits.append(rv)
                     rows = PointRows(tracks)  # the loop renamed tracks
@@ -331,7 +336,7 @@ def _extend(
             progress(f + 1, len(tracks), f"{len(reg.frames)} keyframes, {len(reg.points_w)} points")
     # frames between the segment's start and its initialisation pair are tracked backwards
     for g in range(f1 - 1, start - 1, -1):
-        res, _ = _pnp(tracks, reg, g, reg.T_cw[min(reg.T_cw)], cfg, dirs, lines)
+        res, _ = _pnp(tracks, reg, g, reg.T_cw[min(reg.T_cw)], cfg, dirs, lines, seed)
         if res is None or not res.ok:
             break
         reg.T_cw[g] = res.T_cw
@@ -351,7 +356,9 @@ def _matched_tracks(index: TrackIndex, a: set[int], b: set[int], ratio: float) -
     return [(int(tb[i]), int(ta[j])) for i, j in pairs.tolist()]
 
 
-def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, index: TrackIndex) -> Registration:
+def _merge_segments(
+    segments: list[Registration], cfg: IncrementalConfig, index: TrackIndex, seed: int = 0
+) -> Registration:
     """Chain the segments into the largest one that can take them: a Sim(3) on the points they share,
     by track id or by matching keyframe ORB descriptors (a revisit of a mapped place)."""
     base = max(segments, key=lambda r: len(r.frames))
@@ -371,7 +378,7 @@ def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, index:
             x = np.array([seg.points_w[tb] for tb, _ in common])
             y = np.array([base.points_w[ta] for _, ta in common])
             try:
-                sim = _robust_sim3(x, y, cfg)
+                sim = _robust_sim3(x, y, cfg, seed)
             except PaplError as exc:
                 log.debug("segment merge: %s", exc)
         if sim is None:
@@ -401,9 +408,9 @@ def _merge_segments(segments: list[Registration], cfg: IncrementalConfig, index:
     return base
 
 
-def _robust_sim3(x: np.ndarray, y: np.ndarray, cfg: IncrementalConfig) -> Sim3 | None:
+def _robust_sim3(x: np.ndarray, y: np.ndarray, cfg: IncrementalConfig, seed: int = 0) -> Sim3 | None:
     """Sim(3) y ~ s R x + t by RANSAC over 3-point samples, refit on the inliers; None if too few agree."""
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     scale = np.median(np.linalg.norm(y - np.median(y, axis=0), axis=1))
     tol = cfg.merge_tolerance * scale
     best = np.zeros(len(x), bool)
@@ -429,6 +436,7 @@ def _pnp(
     cfg: IncrementalConfig,
     dirs: RegistrationDirections | None = None,
     lines: RegistrationLines | None = None,
+    seed: int = 0,
 ) -> tuple[PnPResult | None, int]:
     """PnP of frame f against the points mapped so far; None when too few of them are seen."""
     ids, uv = tracks.points_in(f)
@@ -440,7 +448,9 @@ def _pnp(
     lines_w, line_xy, _ = lines.frame_lines(f, reg.T_cw) if lines is not None else (None, None, None)
     pnp = cfg.pnp if lines is None else lines.pnp_config(cfg.pnp)
     if dirs is None:
-        res = track_pnp(X, uv[known], tracks.camera.K, guess, pnp, lines_w=lines_w, line_xy=line_xy)
+        res = track_pnp(
+            X, uv[known], tracks.camera.K, guess, pnp, lines_w=lines_w, line_xy=line_xy, seed=seed
+        )
         return res, len(ids)
     # the vanishing directions of the keyframes so far hold the rotation where points are weak
     dirs_w, sigma = dirs(reg.T_cw)
@@ -455,5 +465,6 @@ def _pnp(
         dirs_w=dirs_w,
         dirs_c=frame_directions(tracks, f),
         dirs_sigma_deg=sigma,
+        seed=seed,
     )
     return res, len(ids)

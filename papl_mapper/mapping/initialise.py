@@ -42,8 +42,6 @@ class InitConfig:
     """A pair whose matches a pure rotation explains to this median angle has no parallax (turn in place)."""
     ambiguity_deg: float = 2.0
     """Two pose hypotheses are different when their rotations differ by more than this."""
-    seed: int = 0
-    """Seed for OpenCV's RANSAC."""
 
 
 @dataclass
@@ -176,9 +174,10 @@ def essential_score(E: np.ndarray, x1: np.ndarray, x2: np.ndarray, sigma: float)
 
 
 def initialise_two_view(
-    x1: np.ndarray, x2: np.ndarray, focal_px: float, config: InitConfig | None = None
+    x1: np.ndarray, x2: np.ndarray, focal_px: float, config: InitConfig | None = None, seed: int = 0
 ) -> InitResult:
-    """Estimate the relative pose from normalised matches x1, x2 (N,2) (undistorted, K^-1 applied)."""
+    """Estimate the relative pose from normalised matches x1, x2 (N,2) (undistorted, K^-1 applied);
+    `seed` seeds OpenCV's RANSAC."""
     cfg = config or InitConfig()
     x1 = np.asarray(x1, np.float64).reshape(-1, 2)
     x2 = np.asarray(x2, np.float64).reshape(-1, 2)
@@ -187,7 +186,7 @@ def initialise_two_view(
     if len(x1) < max(8, cfg.min_inliers):
         return InitResult(False, f"only {len(x1)} matches (need {cfg.min_inliers})")
     thr = cfg.ransac_threshold_px / focal_px
-    cv2.setRNGSeed(cfg.seed)
+    cv2.setRNGSeed(seed)
     E, mask_e = cv2.findEssentialMat(x1, x2, np.eye(3), cv2.RANSAC, 0.999, thr)
     # A transfer error has 2 DoF, an epipolar distance 1: widen the gate by sqrt(5.99 / 3.84).
     H, mask_h = cv2.findHomography(x1, x2, cv2.RANSAC, thr * np.sqrt(5.99 / 3.84))

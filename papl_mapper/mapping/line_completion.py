@@ -13,13 +13,21 @@ line observations follow.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from papl_mapper.frontend.descriptors import hamming_pairs
 from papl_mapper.map import Lines, Map
 from papl_mapper.tracks import Tracks
+
+if TYPE_CHECKING:
+    from papl_mapper.mapping.structure import AxisInputs
+    from papl_mapper.mapping.track_completion import CompletionConfig
+
+log = logging.getLogger(__name__)
 
 NEAR = 0.05  # metres in front of the camera for a projected endpoint to count
 
@@ -217,3 +225,28 @@ def _with_observations(
         obs_ids[order],
         obs_xy[order],
     )
+
+
+def complete_map_lines(
+    tracks: Tracks, m: Map, config: CompletionConfig, axis_inputs: AxisInputs | None = None
+) -> dict[str, int]:
+    """`complete_lines` with the settings of `config` as a pipeline stage: a merged line's
+    vanishing-direction observations then count for the line it joined in `axis_inputs`; the
+    statistics, logged."""
+    done, joined = complete_lines(
+        tracks,
+        m,
+        config.line_max_error_px,
+        config.line_min_overlap,
+        config.line_max_hamming,
+        config.min_views_without_descriptor,
+    )
+    if axis_inputs is not None and joined:
+        axis_inputs.join_lines(joined)
+    log.info(
+        "line tracks: %d merged, %d completed (%d keyframe observations)",
+        done.merged,
+        done.completed,
+        done.observations_added,
+    )
+    return done.as_dict()

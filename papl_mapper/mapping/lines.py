@@ -151,15 +151,17 @@ def triangulate_lines(
     vp_dir_w: np.ndarray,
     K: np.ndarray,
     config: LineInitConfig | None = None,
+    seed: int = 0,
 ) -> LineEstimates:
     """Lines from observations grouped by track: poses (n,4,4), segments (n,4), VP directions (n,3).
 
     `vp_dir_w` holds the world vanishing direction each observation was classified to, NaN for
-    non-structural ones; a track whose directions agree uses their mean as its direction.
+    non-structural ones; a track whose directions agree uses their mean as its direction. `seed`
+    draws the sample of directions the scene's dominant ones are searched in.
     """
     cfg = config or LineInitConfig()
     # the world directions most observations were classified to: candidates for weakly classified tracks
-    common = dominant_directions(vp_dir_w) if cfg.min_vp_fraction > 0 else np.zeros((0, 3))
+    common = dominant_directions(vp_dir_w, seed=seed) if cfg.min_vp_fraction > 0 else np.zeros((0, 3))
     order = np.argsort(track, kind="stable")
     track, T_wc, xy, vp_dir_w = track[order], T_wc[order], xy[order], vp_dir_w[order]
     starts = np.flatnonzero(np.r_[True, track[1:] != track[:-1]]) if len(track) else np.zeros(0, int)
@@ -243,15 +245,21 @@ def _aligned_direction(
 
 
 def dominant_directions(
-    dirs: np.ndarray, gate_deg: float = 2.0, min_share: float = 0.02, max_count: int = 8, sample: int = 2000
+    dirs: np.ndarray,
+    gate_deg: float = 2.0,
+    min_share: float = 0.02,
+    max_count: int = 8,
+    sample: int = 2000,
+    seed: int = 0,
 ) -> np.ndarray:
     """(k, 3) unit directions that at least `min_share` of the finite rows of `dirs` (n, 3) lie within
-    `gate_deg` of (sign-invariant), densest first: the scene's axes as the observations saw them."""
+    `gate_deg` of (sign-invariant), densest first: the scene's axes as the observations saw them
+    (searched among `sample` rows drawn with `seed`)."""
     D = dirs[np.isfinite(dirs).all(axis=1)]
     if len(D) == 0:
         return np.zeros((0, 3))
     D = D / np.linalg.norm(D, axis=1, keepdims=True)
-    seeds = D[np.random.default_rng(0).choice(len(D), min(len(D), sample), replace=False)]
+    seeds = D[np.random.default_rng(seed).choice(len(D), min(len(D), sample), replace=False)]
     cos_gate = np.cos(np.radians(gate_deg))
     near = (np.abs(seeds @ seeds.T) > cos_gate).astype(np.float32)  # (s, s); counts below are exact
     alive, alive_s = np.ones(len(D), bool), np.ones(len(seeds), bool)

@@ -23,8 +23,8 @@ Call sites (`track_pnp` takes the extra terms as keywords; without them it is un
     `dirs_w, sigma = reg_dirs(reg.T_cw)` with one
     `reg_dirs = RegistrationDirections(tracks)` per run, then `track_pnp(..., dirs_w=dirs_w,
     dirs_c=frame_directions(tracks, f), dirs_sigma_deg=sigma)`;
-(b) all-frames trajectory, `pipelines.run.frame_poses`: `refiner = FrameRefiner.from_map(tracks, m,
-    cfg.mapping.pnp.refine)` before the loop, then after a successful PnP
+(b) all-frames trajectory, `mapping.frames.frame_poses`: `refiner = FrameRefiner.from_map(tracks, m,
+    pnp.refine)` before the loop, then after a successful PnP
     `T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])`.
 benchmarks/pose_refine.py monkeypatches both exactly so.
 """
@@ -54,24 +54,19 @@ class PoseRefineConfig:
     enabled: bool = True
     """Refine the PnP pose at all (False keeps OpenCV's points-only LM pose)."""
     lines: bool = False
-    """Add the endpoint-to-line distances of map lines seen in the frame. Off: on the six 10 s scenes
-    it left ATE unchanged (+-0.001%) and raised the frame-to-frame rotation error on Atlanta
-    (0.010 -> 0.015 deg)."""
+    """Add the endpoint-to-line distances of map lines seen in the frame. Off: no gain in the trajectory
+    (benchmarks/RESULTS.md); `mapping.track_lines` turns it on for registration."""
     directions: bool = True
     """Add the rotation term of vanishing directions matched to world directions."""
     directions_below_inliers: int = 100
     """Use the directions only for poses with fewer PnP inliers than this, where points are weak (0:
-    always). Always on, the frontend's VP noise pulled well-held poses: the 60 s 720p corridor went
-    0.023 -> 0.138% ATE; gated at 100 it is 0.031% and Atlanta keeps its gain (0.639 -> 0.226%)."""
+    always): always on, the frontend's VP noise pulls well-held poses (benchmarks/RESULTS.md)."""
     directions_above_rotation_std_deg: float = 0.0
     """Use the directions only where the points-only rotation is this uncertain (1-sigma, from the
     Gauss-Newton normal matrix at `point_sigma_px`; 0: always)."""
     in_registration: bool = True
     """Also use the directions while frames are registered (world directions from the keyframes so
-    far, `RegistrationDirections`). On (10 s scenes, sigma 1 deg): Atlanta 0.639 -> 0.226% ATE and
-    0.291 -> 0.234%, outside the 0.58-0.68% / 0.29-0.38% that irrelevant threshold changes give;
-    corridors and the demo stay inside their bands (demo 0.064 -> 0.115%, band 0.064-0.232%); the
-    garage swings 0.4-2.4% under any change, this one included."""
+    far, `RegistrationDirections`); it helps where points are weak (benchmarks/RESULTS.md)."""
     point_sigma_px: float = 1.0
     """Standard deviation of a point's reprojection error."""
     line_sigma_px: float = 1.0
@@ -82,8 +77,8 @@ class PoseRefineConfig:
     huber: float = 2.0
     """Huber threshold in units of each term's sigma (errors beyond it count linearly)."""
     max_direction_spread_deg: float = 1.0
-    """Directions whose vanishing points scatter more than this (their sigma) are left out: with ground
-    truth rotations the frontend's consistent directions scatter 0.04-0.6 deg, mixed ones 1-2 deg."""
+    """Directions whose vanishing points scatter more than this (their sigma) are left out: consistent
+    directions scatter less, mixed ones more (benchmarks/RESULTS.md)."""
     vertical_only: bool = False
     """Use only the vertical vanishing direction (the frame's `vertical_vp`, the map's vertical axis)."""
     match_direction_deg: float = 3.0

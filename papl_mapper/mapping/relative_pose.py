@@ -38,7 +38,6 @@ class RelativePoseConfig:
     """Essential-matrix inlier threshold."""
     max_reprojection_px: float = 3.0
     """Largest reprojection error, in the frame, of a mapped point that agrees."""
-    seed: int = 0
 
 
 def _ray_scales(xf: np.ndarray, Xg: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -55,15 +54,17 @@ def register_relative(
     T_cw_g: np.ndarray,
     points_w: dict[int, np.ndarray],
     cfg: RelativePoseConfig,
+    seed: int = 0,
 ) -> PnPResult:
-    """Pose T_cw of frame f from its shared tracks with keyframe g (pose T_cw_g) and the mapped points."""
+    """Pose T_cw of frame f from its shared tracks with keyframe g (pose T_cw_g) and the mapped points
+    (`seed` seeds OpenCV's RANSAC)."""
     K = tracks.camera.K
     id_f, uv_f = tracks.points_in(f)
     id_g, uv_g = tracks.points_in(g)
     common, i_f, i_g = np.intersect1d(id_f, id_g, assume_unique=True, return_indices=True)
     if len(common) < cfg.min_matches:
         return PnPResult(False, reason=f"{len(common)} tracks shared with keyframe {g}")
-    cv2.setRNGSeed(cfg.seed)
+    cv2.setRNGSeed(seed)
     E, mask = cv2.findEssentialMat(uv_g[i_g], uv_f[i_f], K, cv2.USAC_FAST, 0.999, cfg.ransac_threshold_px)
     if E is None or mask is None or E.shape != (3, 3) or mask.sum() < cfg.min_matches:
         return PnPResult(False, reason=f"no essential matrix with {cfg.min_matches} inliers against {g}")

@@ -96,8 +96,10 @@ def find_revisit(
     frame: int,
     index: TrackIndex,
     cfg: RevisitConfig,
+    seed: int = 0,
 ) -> Revisit | None:
-    """The revisit seen by keyframe `frame` (its pose `T_cw[frame]` as tracked), or None."""
+    """The revisit seen by keyframe `frame` (its pose `T_cw[frame]` as tracked), or None; `seed` seeds
+    the verifying PnP's RANSAC."""
     here = tracks.point_frame[tracks.point_desc_row] == frame
     rows = tracks.point_desc_row[here]
     if len(rows) < cfg.min_inliers:
@@ -130,7 +132,7 @@ def find_revisit(
     qi, oi = pairs.T
     X = X_old[oi]
     pnp = PnPConfig(ransac_threshold_px=cfg.ransac_threshold_px, min_inliers=cfg.min_inliers, iterations=500)
-    res = track_pnp(X, q_uv[qi], tracks.camera.K, None, pnp)
+    res = track_pnp(X, q_uv[qi], tracks.camera.K, None, pnp, seed=seed)
     if not res.ok:
         log.debug("frame %d: %d ORB matches to old points, not verified (%s)", frame, len(pairs), res.reason)
         return None

@@ -1,4 +1,5 @@
-"""Principal axes of a whole map: the vertical, horizontal axes by mean shift, soft line weights by EM.
+"""Principal axes of a whole map: the vertical, horizontal axes by mean shift, soft line weights by EM;
+as pipeline stages, the map's lines triangulated, anchored to those axes and the axes updated after BA.
 
 A batch tool sees every line at once, so axis creation runs over all structural lines until no
 new axis is accepted (the paper creates one per local map); association then gives every line
@@ -13,9 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from papl_mapper.axes import AxesConfig, AxisState, associate, create_axes
-from papl_mapper.map import Axes
-from papl_mapper.mapping.assemble import refine_direction
+from papl_mapper.axes import AxesConfig, AxisState, associate, create_axes, remap_weights, update_axes
+from papl_mapper.geometry.triangulation import observation_planes
+from papl_mapper.map import Axes, Map
+from papl_mapper.mapping.assemble import assemble_map, refine_direction, set_line_states, vp_directions_w
+from papl_mapper.mapping.lines import LineEstimates, LineInitConfig, triangulate_lines
+from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
 
@@ -119,3 +123,109 @@ def find_structure(
         n,
     )
     return Structure(Axes(axes, vertical_index=0), weights, AxisState.new(len(axes), vertical_index=0))
+
+
+@dataclass
+class AxisInputs:
+    """What the axis update after the full BA needs from line triangulation and axis creation."""
+
+    axes_w: np.ndarray  # (A, 3) axes as created, before the BA moved them
+    state: AxisState
+    obs_dirs_w: np.ndarray  # (K, 3) world vanishing directions of the line observations
+    obs_line: np.ndarray  # (K,) index into line_track
+    line_track: np.ndarray  # (M,) sorted track ids of the triangulated lines
+
+    def join_lines(self, joined: dict[int, int]) -> None:
+        """Line tracks merged into others (track -> the track it joined): their vanishing-direction
+        observations count for the line they joined when the axis update re-associates the lines."""
+        lt = self.line_track
+        src = np.array([t for t in joined if t in set(lt.tolist())], np.int64)
+        if len(src):
+            dst = np.searchsorted(lt, [joined[int(t)] for t in src])
+            remap = np.arange(len(lt))
+            remap[np.searchsorted(lt, src)] = dst
+            self.obs_line = remap[self.obs_line]
+
+
+@dataclass
+class MapLines:
+    """Lines triangulated from the segments of the posed frames, and those segments' observations."""
+
+    est: LineEstimates
+    track: np.ndarray  # (K,) line track of each observation used
+    xy: np.ndarray  # (K, 4) its segment, undistorted pixels
+    T_wc: np.ndarray  # (K, 4, 4) pose of its frame
+    vp_w: np.ndarray  # (K, 3) world vanishing direction it was classified to (NaN: none)
+
+
+def triangulate_map_lines(
+    tracks: Tracks, T_by_frame: dict[int, np.ndarray], config: LineInitConfig, seed: int = 0
+) -> MapLines:
+    """Lines from the segments of the frames posed in `T_by_frame` (T_wc by frame; more views than the
+    keyframes alone give longer baselines), structural ones along their vanishing direction."""
+    sel = np.isin(tracks.line_frame, list(T_by_frame))
+    frames, labels = tracks.line_frame[sel], tracks.line_vp[sel]
+    T_obs = np.stack([T_by_frame[int(f)] for f in frames]) if sel.any() else np.zeros((0, 4, 4))
+    vp_w = vp_directions_w(tracks, frames, labels, T_obs)
+    track, xy = tracks.line_track[sel], tracks.line_xy[sel]
+    est = triangulate_lines(track, T_obs, xy, vp_w, tracks.camera.K, config, seed)
+    log.info("%d lines triangulated, %d from vanishing directions", len(est.track), int(est.from_vp.sum()))
+    return MapLines(est, track, xy, T_obs, vp_w)
+
+
+def structured_map(
+    tracks: Tracks, m: Map, lines: MapLines, upright: bool, config: AxesConfig, anchored: bool = True
+) -> tuple[Map, AxisInputs | None]:
+    """The map for the full BA: the keyframes and points of `m` with `lines`, anchored to the principal
+    axes found among them (soft or hard association as configured), and what the axis update after
+    the BA needs. Without axes (`anchored` False: every line orthonormal, or a map that could not be
+    turned upright) the lines stay free and the second value is None."""
+    poses = {int(k): T for k, T in zip(m.keyframes.ids, m.keyframes.T_wc, strict=True)}
+    points = {int(i): x for i, x in zip(m.points.ids, m.points.xyz, strict=True)}
+    est = lines.est
+    if not anchored or not upright:
+        out = assemble_map(tracks, poses, points, est)
+        out.metadata = dict(m.metadata)
+        return out, None
+    obs_line = np.searchsorted(est.track, lines.track)
+    known = np.isin(lines.track, est.track)
+    obs_dirs, obs_line = lines.vp_w[known], obs_line[known]
+    d = est.endpoints_w[:, 1] - est.endpoints_w[:, 0]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    xy = lines.xy[known]
+    structure = find_structure(
+        d,
+        est.from_vp,
+        obs_dirs,
+        obs_line,
+        np.array([0.0, 0.0, 1.0]),
+        config,
+        hard=config.association == "hard",
+        obs_normals_w=observation_planes(lines.T_wc[known], tracks.camera.K, xy)[:, :3],
+        obs_weight=np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1),
+        min_support_fraction=config.min_support_fraction,
+    )
+    out = assemble_map(tracks, poses, points, est, structure.axes, structure.weights)
+    out.metadata = dict(m.metadata)
+    return out, AxisInputs(structure.axes.directions, structure.state, obs_dirs, obs_line, est.track)
+
+
+def update_structure(m: Map, inputs: AxisInputs, config: AxesConfig) -> tuple[bool, list[str]]:
+    """After a full BA: adopt, merge or delete the axes of `m` as they moved, and re-associate its lines
+    (in place). Returns whether the axes changed (then the BA is worth running again) and what was done."""
+    upd = update_axes(inputs.axes_w, m.axes.directions, inputs.state, config)
+    w = remap_weights(m.lines.axis_weights, upd.index_map, len(upd.axes))
+    messages = upd.messages()
+    m.axes = upd.to_map_axes()
+    fresh = line_weights(
+        inputs.obs_dirs_w,
+        inputs.obs_line,
+        len(inputs.line_track),
+        m.axes.directions,
+        config,
+        config.association == "hard",
+    )
+    order = np.searchsorted(inputs.line_track, m.lines.ids)
+    m.lines.axis_weights = np.where(fresh[order].sum(1, keepdims=True) > 0, fresh[order], w)
+    set_line_states(m)
+    return bool(upd.adopted or upd.deleted or upd.merged), messages

@@ -13,6 +13,7 @@ renamed in `tracks.point_track` in place, as loop closures do, so later stages s
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -23,6 +24,8 @@ from papl_mapper.geometry.se3 import invert, project_points
 from papl_mapper.geometry.triangulation import max_reprojection_px, triangulate_points
 from papl_mapper.map import Map
 from papl_mapper.tracks import PointRows, Tracks
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -210,3 +213,22 @@ def _retriangulate(
     for i in np.flatnonzero(ok).tolist():
         points_w[int(uniq[i])] = X[i]
     return int(ok.sum())
+
+
+def complete_map(tracks: Tracks, m: Map, config: CompletionConfig | None = None) -> CompletionStats:
+    """`complete_tracks` on the BA poses of `m`, its points replaced in place (keyframes and lines kept)
+    for the BA that follows; the statistics, logged."""
+    from papl_mapper.mapping.assemble import assemble_map
+    from papl_mapper.mapping.lines import LineEstimates
+
+    points_w, done = complete_tracks(tracks, m, config)
+    poses = {int(k): T for k, T in zip(m.keyframes.ids, m.keyframes.T_wc, strict=True)}
+    m.points = assemble_map(tracks, poses, points_w, LineEstimates.empty()).points
+    log.info(
+        "tracks: %d merged, %d completed (%d keyframe observations), %d retriangulated",
+        done.merged,
+        done.completed,
+        done.observations_added,
+        done.retriangulated,
+    )
+    return done

@@ -31,8 +31,6 @@ class PnPConfig:
     """Fewest inliers for the pose to count as tracked."""
     iterations: int = 200
     """RANSAC iterations."""
-    seed: int = 0
-    """Seed for OpenCV's RANSAC."""
     refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
     """Refinement with lines and vanishing directions after PnP (when the caller passes them)."""
 
@@ -69,13 +67,14 @@ def track_pnp(
     dirs_w: np.ndarray | None = None,
     dirs_c: np.ndarray | None = None,
     dirs_sigma_deg: np.ndarray | None = None,
+    seed: int = 0,
 ) -> PnPResult:
     """Pose from 3D world points (N,3) seen at undistorted pixels (N,2); a guess seeds the search.
 
     Optional refinement terms: map lines seen in the frame (M,2,3) world endpoints or (M,6) Pluecker
     with their segments (M,4) px, and world directions (A,3) with the frame's vanishing directions
     (V,3) (NaN rows skipped, matched sign-free within `config.refine.match_direction_deg`), optionally
-    with a sigma (A,) in degrees per world direction.
+    with a sigma (A,) in degrees per world direction. `seed` seeds OpenCV's RANSAC.
     """
     cfg = config or PnPConfig()
     points_w = np.asarray(points_w, np.float64).reshape(-1, 3)
@@ -86,7 +85,7 @@ def track_pnp(
     use_guess = T_cw_guess is not None
     rvec = cv2.Rodrigues(T_cw_guess[:3, :3])[0] if use_guess else np.zeros((3, 1))
     tvec = T_cw_guess[:3, 3].reshape(3, 1).copy() if use_guess else np.zeros((3, 1))
-    cv2.setRNGSeed(cfg.seed)
+    cv2.setRNGSeed(seed)
     ok, rvec, tvec, idx = cv2.solvePnPRansac(
         points_w,
         pixels,

@@ -1,0 +1,147 @@
+"""What `pipelines.run.run` writes into its output folder, and the checks made before any work.
+
+The map, trajectories, config and summary are written under temporary names and renamed together
+(`write_outputs`); then the extras `config.output` asks for: exports, eval.json, previews, report
+(`write_extras`). manifest.json lists them all (`papl_mapper.outputs`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from papl_mapper.pipelines.config import RunConfig, check_input
+from papl_mapper.pipelines.summary import RunSummary
+
+from papl_mapper.atomic import atomic_path, check_output_dir
+from papl_mapper.config import config_to_dict, dump_toml
+from papl_mapper.errors import InputError
+from papl_mapper.eval.trajectory import Trajectory, write_tum
+from papl_mapper.map import Map, json_default
+from papl_mapper.outputs import add_outputs, begin_run
+from papl_mapper.scale import check_config as check_scale_config
+
+log = logging.getLogger(__name__)
+
+OUTPUT_FILES = ("trajectory.tum", "keyframes.tum", "config.toml", "summary.json", "map.papl")
+"""What a run writes into the output folder, in the order the files are renamed into place."""
+
+
+@dataclass
+class Extras:
+    """The extra outputs a run wrote (absolute paths), for the caller to list."""
+
+    exports: list[Path] = field(default_factory=list)
+    evaluation: Any = None
+    """`eval.Evaluation` against `config.output.gt`, or None."""
+    previews: list[Path] | None = None
+    """The preview PNGs (None: not rendered)."""
+    turntable: Path | None = None
+    report: Path | None = None
+
+    def paths(self, out: Path) -> list[Path]:
+        """Every file written, eval.json included."""
+        ev = [out / "eval.json"] if self.evaluation is not None else []
+        optional = [p for p in (self.turntable, self.report) if p is not None]
+        return [*self.exports, *ev, *(self.previews or []), *optional]
+
+
+def check_before_work(out: Path, cfg: RunConfig) -> None:
+    """Every setting and path that can be checked before the first frame: the output folder, the frame
+    range, the export formats and their targets, the ground-truth folder, the scale settings."""
+    from papl_mapper.exporters import check_target, suffix_of
+
+    check_output_dir(out)
+    check_input(cfg.input)
+    for fmt in cfg.output.export:
+        target = out / _export_name(fmt)
+        if out.is_dir():
+            check_target(target)
+        else:
+            suffix_of(target)
+    if cfg.output.gt is not None and not cfg.output.gt.is_dir():
+        raise InputError(f"--gt {cfg.output.gt}: no such ground-truth folder")
+    check_scale_config(cfg.scale)  # a bad --marker or --camera-height fails before any work
+
+
+def _export_name(fmt: str) -> str:
+    return f"map.{fmt.strip().lstrip('.')}"
+
+
+def write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary: RunSummary) -> None:
+    """Every output is written under a temporary name first, then all are renamed (the map last), so an
+    interruption while writing leaves the previous run's outputs, not a mix of two runs (only a Ctrl-C
+    landing between two of the five renames, a window of microseconds, could still mix them)."""
+    with contextlib.ExitStack() as stack:
+        # contexts close in reverse: the map, entered first, is renamed last
+        tmp = {name: stack.enter_context(atomic_path(out / name)) for name in reversed(OUTPUT_FILES)}
+        m.save(tmp["map.papl"])
+        _write_text(tmp["summary.json"], json.dumps(summary.to_dict(), indent=1, default=json_default))
+        _write_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
+        write_tum(tmp["keyframes.tum"], Trajectory(m.keyframes.timestamp, m.keyframes.T_wc, "keyframes"))
+        write_tum(tmp["trajectory.tum"], traj)
+    begin_run(out, [out / name for name in OUTPUT_FILES])
+
+
+def write_unmapped(out: Path, traj: Trajectory, cfg: RunConfig, summary: RunSummary) -> None:
+    """What a recording that cannot be mapped still gives: the poses found (orientations of a camera
+    turning in place), the config and the summary saying why; no map, no structure."""
+    names = ("trajectory.tum", "config.toml", "summary.json")
+    with contextlib.ExitStack() as stack:
+        tmp = {name: stack.enter_context(atomic_path(out / name)) for name in names}
+        write_tum(tmp["trajectory.tum"], traj)
+        _write_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
+        _write_text(tmp["summary.json"], json.dumps(summary.to_dict(), indent=1, default=json_default))
+    begin_run(out, [out / name for name in names])
+
+
+def write_extras(out: Path, m: Map, cfg: RunConfig, progress: Any) -> Extras:
+    """The exports, eval.json, previews and report.html of `cfg.output`, each added to the manifest as
+    it is written; `progress(title)` is the previews' progress context (see `pipelines.run`)."""
+    done = Extras()
+    o = cfg.output
+    for fmt in o.export:
+        from papl_mapper.exporters import export
+
+        paths = export(m, out / _export_name(fmt))
+        add_outputs(out, paths)
+        done.exports += paths
+    if o.gt is not None:
+        from papl_mapper.eval import evaluate
+
+        done.evaluation = evaluate(o.gt, m, out / "trajectory.tum")
+        with atomic_path(out / "eval.json") as tmp:
+            tmp.write_text(json.dumps(done.evaluation.to_dict(), indent=1))
+        add_outputs(out, [out / "eval.json"])
+    if o.render:
+        from papl_mapper.gui.preview import render_views
+
+        with progress("previews") as cb:
+            res = render_views(m, out / "previews", progress=cb)
+        done.previews, done.turntable = list(res.paths), res.turntable or None
+        add_outputs(out, done.previews + ([done.turntable] if done.turntable else []))
+    if o.report:
+        from papl_mapper.gui.report import write_report
+
+        done.report = write_report(out, out / "report.html", gt_dir=o.gt)
+        add_outputs(out, [done.report])
+    return done
+
+
+def unmapped_trajectory(timestamps: np.ndarray, T_cw_frames: dict[int, np.ndarray]) -> Trajectory:
+    """The poses an unmappable recording still has (world-to-camera per frame) as a trajectory."""
+    from papl_mapper.geometry.se3 import invert
+
+    frames = np.array(sorted(T_cw_frames), np.int64)
+    T_wc = np.array([invert(T_cw_frames[int(f)]) for f in frames]).reshape(-1, 4, 4)
+    return Trajectory(timestamps[frames].astype(np.float64), T_wc, "trajectory")
+
+
+def _write_text(path: Path, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
