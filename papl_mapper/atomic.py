@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import stat
 import tempfile
 from collections.abc import Iterator
@@ -121,3 +122,18 @@ def move_into_place(source: str | os.PathLike, path: str | os.PathLike) -> Path:
     except OSError as exc:
         raise OutputError(f"{path}: could not write the file ({exc.strerror or exc})") from exc
     return Path(path)
+
+
+def move_dir_into_place(source: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Rename the finished folder `source` (on the same file system) over the folder `path`, replacing
+    an earlier one; a file, link or device at `path` is refused."""
+    target = Path(path)
+    if target.is_symlink() or (target.exists() and not target.is_dir()):
+        raise OutputError(f"{path}: is not a folder; refusing to replace it")
+    try:
+        if target.exists():
+            shutil.rmtree(target)
+        os.replace(source, target)
+    except OSError as exc:
+        raise OutputError(f"{path}: could not write the folder ({exc.strerror or exc})") from exc
+    return target

@@ -28,6 +28,7 @@ from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.pipelines.summary import MappingStats
 
 from papl_mapper import __version__
+from papl_mapper.atomic import move_dir_into_place
 from papl_mapper.axes.update import AxisState
 from papl_mapper.config import config_to_dict
 from papl_mapper.errors import OutputError
@@ -216,9 +217,7 @@ class StageStore:
                 meta = {"stage": stage, "key": self.keys[stage], "stats": stats or {}}
                 meta["timings_s"] = dict(timings_s or {})
                 (tmp / "stage.json").write_text(json.dumps(meta, indent=1, default=json_default))
-                if final.exists():
-                    shutil.rmtree(final)
-                os.rename(tmp, final)
+                move_dir_into_place(tmp, final)
         except (OSError, OutputError) as exc:
             log.warning("could not write the %s checkpoint in %s (%s)", TITLES[stage], self.folder, exc)
             return None

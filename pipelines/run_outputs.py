@@ -21,10 +21,10 @@ from papl_mapper.pipelines.summary import RunSummary
 from papl_mapper.atomic import atomic_path, check_output_dir
 from papl_mapper.config import config_to_dict, dump_toml
 from papl_mapper.errors import InputError
-from papl_mapper.eval.trajectory import Trajectory, write_tum
 from papl_mapper.map import Map, json_default
 from papl_mapper.outputs import add_outputs, begin_run
 from papl_mapper.scale import check_config as check_scale_config
+from papl_mapper.trajectory_io import Trajectory, write_tum
 
 log = logging.getLogger(__name__)
 

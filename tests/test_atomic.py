@@ -27,3 +27,24 @@ def test_move_into_place_refuses_a_folder(tmp_path: Path):
     with pytest.raises(OutputError, match="is a folder"):
         move_into_place(src, tmp_path / "log.txt")
     assert src.read_text() == "new"
+
+
+def test_move_dir_into_place_replaces_a_folder_and_refuses_a_file(tmp_path):
+    """A finished staging folder takes the place of the earlier folder (whose files go with it); a file
+    where the folder should be is refused with an OutputError naming it, and nothing moves."""
+    from papl_mapper.atomic import move_dir_into_place
+
+    target = tmp_path / "frames"
+    target.mkdir()
+    (target / "old.png").write_bytes(b"old")
+    staged = tmp_path / ".frames.tmp"
+    staged.mkdir()
+    (staged / "new.png").write_bytes(b"new")
+    assert move_dir_into_place(staged, target) == target
+    assert sorted(p.name for p in target.iterdir()) == ["new.png"] and not staged.exists()
+    blocker = tmp_path / "taken"
+    blocker.write_text("a file")
+    staged.mkdir()
+    with pytest.raises(OutputError, match="taken"):
+        move_dir_into_place(staged, blocker)
+    assert staged.is_dir() and blocker.read_text() == "a file"

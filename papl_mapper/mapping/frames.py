@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from papl_mapper.eval.trajectory import Trajectory
 from papl_mapper.geometry.se3 import invert
 from papl_mapper.map import Map
 from papl_mapper.mapping.pose_refine import FrameRefiner
 from papl_mapper.mapping.rotation_only import RotationOnlyConfig, fill_rotation_only
 from papl_mapper.mapping.tracking import PnPConfig, track_pnp
 from papl_mapper.tracks import Tracks
+from papl_mapper.trajectory_io import Trajectory
 
 
 def keyframe_poses(m: Map) -> dict[int, np.ndarray]:

@@ -45,6 +45,7 @@ import cv2
 import numpy as np
 
 from papl_mapper import __version__
+from papl_mapper.atomic import move_dir_into_place, move_into_place
 from papl_mapper.errors import BackendUnavailableError, InputError
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
 from papl_mapper.synth.markers import place_markers
@@ -409,15 +410,15 @@ def generate(
             shutil.rmtree(frames_tmp, ignore_errors=True)
         raise
     for tmp, final in staged:
-        os.replace(tmp, final)
+        move_into_place(tmp, final)
     if not markers:
         (out / "gt" / "markers.json").unlink(missing_ok=True)  # the markers of an earlier run
     if photos:
         (out / "video.mp4").unlink(missing_ok=True)  # the video of an earlier run
-    if frames_tmp is not None or _only_our_frames(out / "frames"):
-        shutil.rmtree(out / "frames", ignore_errors=True)  # frames of an earlier run
     if frames_tmp is not None:
-        os.replace(frames_tmp, out / "frames")
+        move_dir_into_place(frames_tmp, out / "frames")  # over the frames of an earlier run
+    elif _only_our_frames(out / "frames"):
+        shutil.rmtree(out / "frames", ignore_errors=True)  # frames of an earlier run
     length = float(np.linalg.norm(np.diff(T_wc[:, :3, 3], axis=0), axis=1).sum())
     info = {
         "scene": config.scene,
@@ -437,7 +438,7 @@ def generate(
     if config.drop_fraction > 0:
         info["dropped_frames"] = np.setdiff1d(np.arange(n), keep).tolist()
     tmp, final = _stage_text(out / "scene.json", json.dumps(info, indent=2) + "\n")
-    os.replace(tmp, final)
+    move_into_place(tmp, final)
     return out
 
 
