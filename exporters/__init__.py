@@ -10,6 +10,7 @@ text returns `{file name: bytes}`), listed in `REGISTRY` by suffix; `export` wri
 from .registry import (
     FOLDER_FORMATS,
     REGISTRY,
+    check_available,
     check_target,
     export,
     suffix_of,
@@ -22,6 +23,7 @@ __all__ = [
     "FOLDER_FORMATS",
     "PARTS",
     "REGISTRY",
+    "check_available",
     "ExportOptions",
     "ExportScene",
     "check_target",

@@ -198,3 +198,4 @@ FORMATS = {
     ".elevation.dxf": export_elevation_dxf,
     ".elevation.svg": export_elevation_svg,
 }
+REQUIRES = {suffix: ("ezdxf", "DXF drawing export") for suffix in FORMATS if suffix.endswith(".dxf")}

@@ -155,3 +155,4 @@ def export_dxf(m: Map, options: ExportOptions | None = None) -> bytes:
 
 
 FORMATS = {".dxf": export_dxf}
+REQUIRES = {".dxf": ("ezdxf", "DXF export")}

@@ -18,6 +18,7 @@ from typing import Any
 
 from papl_mapper.atomic import atomic_path, check_output_dir, output_target
 from papl_mapper.errors import ConfigError, InputError, OutputError
+from papl_mapper.extras import require
 from papl_mapper.map import Map
 
 from . import colmap, drawing, dxf, gltf, obj, ply, trajectory, tubes, usd
@@ -33,6 +34,10 @@ for _module in (ply, gltf, usd, dxf, obj, tubes, trajectory, colmap, drawing):
     REGISTRY.update(_module.FORMATS)
 #: suffixes whose export is a folder of files (dict name -> bytes)
 FOLDER_FORMATS = frozenset(colmap.FORMATS)
+#: suffix -> (module, feature): the optional library a format needs (modules publish `REQUIRES`)
+REQUIRES: dict[str, tuple[str, str]] = {}
+for _module in (usd, dxf, drawing):
+    REQUIRES.update(_module.REQUIRES)
 
 
 def supported_suffixes() -> list[str]:
@@ -66,10 +71,18 @@ def suffix_of(path: str | os.PathLike, format: str | None = None) -> str:
 _VIEW_NAME = re.compile(r"(?:^|[._-])(?P<kind>plan|elevation)(?:-(?P<axis>\d+))?\.(?P<ext>dxf|svg)$")
 
 
+def check_available(key: str) -> None:
+    """BackendUnavailableError naming the extra when the format `key` needs a library not installed."""
+    if key in REQUIRES:
+        require(*REQUIRES[key])
+
+
 def check_target(path: str | os.PathLike, format: str | None = None) -> str:
-    """Refuse an export target before any work: unknown suffix, or a name the output-path policy
-    (`atomic.output_target`) would not write. Returns the format's registry key."""
+    """Refuse an export target before any work: unknown suffix, a format whose library (an extra) is not
+    installed, or a name the output-path policy (`atomic.output_target`) would not write. Returns the
+    format's registry key."""
     key = suffix_of(path, format)
+    check_available(key)
     if key in FOLDER_FORMATS:
         check_output_dir(path)
     else:

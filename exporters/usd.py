@@ -140,3 +140,4 @@ def export_usdz(m: Map, options: ExportOptions | None = None) -> bytes:
 
 
 FORMATS = {".usda": export_usda, ".usdc": export_usdc, ".usdz": export_usdz}
+REQUIRES = {suffix: ("pxr.Usd", "USD export") for suffix in FORMATS}

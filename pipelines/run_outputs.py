@@ -21,6 +21,7 @@ from papl_mapper.pipelines.summary import RunSummary
 from papl_mapper.atomic import atomic_path, check_output_dir
 from papl_mapper.config import config_to_dict, dump_toml
 from papl_mapper.errors import InputError
+from papl_mapper.extras import require
 from papl_mapper.map import Map, json_default
 from papl_mapper.outputs import add_outputs, begin_run
 from papl_mapper.scale import check_config as check_scale_config
@@ -53,8 +54,9 @@ class Extras:
 
 def check_before_work(out: Path, cfg: RunConfig) -> None:
     """Every setting and path that can be checked before the first frame: the output folder, the frame
-    range, the export formats and their targets, the ground-truth folder, the scale settings."""
-    from papl_mapper.exporters import check_target, suffix_of
+    range, the export formats, their targets and libraries, the previews' and report's libraries, the
+    ground-truth folder, the scale settings."""
+    from papl_mapper.exporters import check_available, check_target, suffix_of
 
     check_output_dir(out)
     check_input(cfg.input)
@@ -63,7 +65,15 @@ def check_before_work(out: Path, cfg: RunConfig) -> None:
         if out.is_dir():
             check_target(target)
         else:
-            suffix_of(target)
+            check_available(suffix_of(target))
+    # a missing extra fails now, not after the mapping: previews and the report's plots
+    if cfg.output.render:
+        from papl_mapper.gui.preview import RENDER_MODULES
+
+        for module in RENDER_MODULES:
+            require(module, "rendering previews")
+    if cfg.output.report:
+        require("matplotlib", "the report's plots")
     if cfg.output.gt is not None and not cfg.output.gt.is_dir():
         raise InputError(f"--gt {cfg.output.gt}: no such ground-truth folder")
     check_scale_config(cfg.scale)  # a bad --marker or --camera-height fails before any work

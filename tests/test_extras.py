@@ -99,3 +99,26 @@ def test_the_core_runs_without_any_extra(tmp_path):
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
     assert (tmp_path / "out.ply").is_file() and (tmp_path / "out.colmap").is_dir()
+
+
+@pytest.mark.parametrize(
+    "flags, top, extra",
+    [
+        (["--export", "ply,usdc"], "pxr", "usd"),
+        (["--export", "plan.dxf"], "ezdxf", "dxf"),
+        (["--render"], "pyvista", "render"),
+        (["--report"], "matplotlib", "render"),
+    ],
+)
+def test_run_refuses_a_missing_extra_before_any_work(monkeypatch, tmp_path, capsys, flags, top, extra):
+    """`papl-map run` checks the libraries of the outputs it is asked for before the first frame: one
+    line naming the extra, its exit code, and no frame read (no checkpoint, no log, no map)."""
+    from papl_mapper.cli import main
+
+    out = tmp_path / "out"
+    _absent(monkeypatch, top)
+    code = main(["run", str(ROOT / "samples" / "tiny" / "video.mp4"), "--out", str(out), *flags])
+    err = capsys.readouterr().err.strip()
+    assert code == BackendUnavailableError.exit_code
+    assert len(err.splitlines()) == 1 and f"papl-mapper[{extra}]" in err, err
+    assert not (out / ".checkpoint").exists() and not (out / "map.papl").exists()
