@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 from machine import git_commit
-from papl_mapper.pipelines.config import PRESETS, RunConfig
-from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 
 from papl_mapper.config import load_config
 from papl_mapper.eval import evaluate
 from papl_mapper.frontend import FrontendStats, open_recording, process, read_camera_file
+from papl_mapper.pipelines.config import PRESETS, RunConfig
+from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 from papl_mapper.synth import SynthConfig, generate
 from papl_mapper.tracks import Tracks
 from papl_mapper.trajectory_io import write_tum

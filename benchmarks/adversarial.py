@@ -22,14 +22,14 @@ from pathlib import Path
 
 import numpy as np
 from machine import machine_info
-from papl_mapper.pipelines.config import PRESETS, RunConfig
-from papl_mapper.pipelines.run import run
 
 from papl_mapper.config import load_config
 from papl_mapper.errors import UnmappableError
 from papl_mapper.eval import evaluate
 from papl_mapper.geometry.se3 import rotation_angle_deg
 from papl_mapper.map import Map
+from papl_mapper.pipelines.config import PRESETS, RunConfig
+from papl_mapper.pipelines.run import run
 from papl_mapper.synth import SynthConfig, generate, with_variants
 from papl_mapper.trajectory_io import read_tum
 

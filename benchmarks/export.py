@@ -79,7 +79,6 @@ def _vmhwm_mb() -> float:
 def child(map_path: str, out_path: str) -> None:
     """Runs in the subprocess: load, export once, print one JSON line."""
     from papl_mapper.exporters import export
-
     from papl_mapper.map import Map
 
     m = Map.load(map_path)

@@ -91,8 +91,9 @@ def ply_writers(scene) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
 
 
 def ply_ascii_writers(scene) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
-    from papl_mapper.exporters.ply import ply_elements, scene_to_ply
     from plyfile import PlyData, PlyElement
+
+    from papl_mapper.exporters.ply import ply_elements, scene_to_ply
 
     def plyfile_bytes() -> bytes:
         vertex, edge, comments = ply_elements(scene)
@@ -109,9 +110,10 @@ def ply_ascii_writers(scene) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
 
 
 def tubes_ply_writers(m) -> dict[str, Callable[[], bytes]]:  # noqa: ANN001
+    from plyfile import PlyData, PlyElement
+
     from papl_mapper.exporters.scene import ExportOptions, prepare
     from papl_mapper.exporters.tubes import export_tubes_ply, tube_ply_elements
-    from plyfile import PlyData, PlyElement
 
     options = ExportOptions()
     scene = prepare(m, options)
@@ -205,6 +207,7 @@ def main() -> int:
     args = ap.parse_args()
     sys.path.insert(0, str(ROOT))
     from export import synthetic_map
+
     from papl_mapper.exporters.scene import ExportOptions, prepare
 
     skip = {s for s in args.skip.split(",") if s}

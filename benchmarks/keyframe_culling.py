@@ -20,15 +20,15 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import papl_mapper.pipelines.run as pipeline  # noqa: E402
 from machine import machine_info  # noqa: E402
-from papl_mapper.pipelines.config import RunConfig  # noqa: E402
 
+import papl_mapper.pipelines.run as pipeline  # noqa: E402
 from papl_mapper.eval import evaluate  # noqa: E402
 from papl_mapper.frontend import process  # noqa: E402
 from papl_mapper.frontend.camera import camera_for_recording  # noqa: E402
 from papl_mapper.frontend.video import open_recording  # noqa: E402
 from papl_mapper.mapping.culling import CullConfig, CullStats, cull_keyframes  # noqa: E402
+from papl_mapper.pipelines.config import RunConfig  # noqa: E402
 from papl_mapper.tracks import Tracks  # noqa: E402
 from papl_mapper.trajectory_io import write_tum  # noqa: E402
 

@@ -36,12 +36,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import papl_mapper.pipelines.run as run_mod
 from machine import machine_info
-from papl_mapper.pipelines.config import RunConfig
 
 import papl_mapper.mapping.adjust as adjust_mod
 import papl_mapper.mapping.structure as structure_mod
+import papl_mapper.pipelines.run as run_mod
 from papl_mapper.config import load_config
 from papl_mapper.eval import evaluate
 from papl_mapper.eval.evaluate import load_ground_truth
@@ -51,6 +50,7 @@ from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.geometry.triangulation import observation_planes
 from papl_mapper.mapping.assemble import vp_directions_w
 from papl_mapper.mapping.lines import _plane_angle_deg
+from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.tracks import Tracks
 from papl_mapper.trajectory_io import write_tum
 

@@ -52,10 +52,9 @@ def child(args: argparse.Namespace) -> None:
     import contextlib
 
     import papl_mapper.pipelines.run as pipeline
-    from papl_mapper.pipelines.config import RunConfig, with_input
-
     from papl_mapper.config import load_config
     from papl_mapper.eval import evaluate
+    from papl_mapper.pipelines.config import RunConfig, with_input
 
     memory: dict[str, dict[str, float]] = {}
     stage = pipeline._Timer.stage

@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 from machine import machine_info
-from papl_mapper.pipelines.config import RunConfig
-from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 
 from papl_mapper.config import load_config
 from papl_mapper.eval import evaluate
 from papl_mapper.mapping.pose_refine import refine_pose
+from papl_mapper.pipelines.config import RunConfig
+from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 from papl_mapper.tracks import Tracks
 from papl_mapper.trajectory_io import write_tum
 

@@ -27,14 +27,14 @@ from pathlib import Path
 
 import numpy as np
 from machine import machine_info
-from papl_mapper.pipelines.config import RunConfig
-from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 
 from papl_mapper.config import load_config
 from papl_mapper.eval import evaluate
 from papl_mapper.eval.trajectory import associate
 from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.mapping import incremental
+from papl_mapper.pipelines.config import RunConfig
+from papl_mapper.pipelines.run import frame_trajectory, map_tracks
 from papl_mapper.tracks import Tracks
 from papl_mapper.trajectory_io import read_tum, write_tum
 

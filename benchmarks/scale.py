@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 from machine import machine_info
-from papl_mapper.exporters import ExportOptions, prepare
-from papl_mapper.exporters.views import plan_view
 
 from papl_mapper.eval.lines import point_segment_distance, read_segments
 from papl_mapper.eval.trajectory import associate_trajectories
+from papl_mapper.exporters import ExportOptions, prepare
+from papl_mapper.exporters.views import plan_view
 from papl_mapper.frontend.video import open_recording
 from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.map import Map

@@ -55,7 +55,6 @@ def _child_data(map_path: str) -> dict:
 
     from papl_mapper.gui.viewer_actors import segments_polydata
     from papl_mapper.gui.viewer_scene import ViewerScene
-
     from papl_mapper.map import Map
 
     segments_polydata(np.zeros((1, 2, 3)))  # pyvista's import is not the data path

@@ -220,9 +220,8 @@ def detector_for(run_dir: Path | None) -> SegmentDetector:
 
     cfg = LineConfig()
     if run_dir is not None and (run_dir / "config.toml").is_file():
-        from papl_mapper.pipelines.config import RunConfig
-
         from papl_mapper.config import load_config
+        from papl_mapper.pipelines.config import RunConfig
 
         try:
             cfg = load_config(RunConfig, run_dir / "config.toml").frontend.lines

@@ -43,13 +43,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from papl_mapper.pipelines.batch_index import write_index
-from papl_mapper.pipelines.batch_inputs import Recording, assign_names, collect
-from papl_mapper.pipelines.logfile import close_log, file_log
-
 from papl_mapper import __version__
 from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import InputError, PaplError
+from papl_mapper.pipelines.batch_index import write_index
+from papl_mapper.pipelines.batch_inputs import Recording, assign_names, collect
+from papl_mapper.pipelines.logfile import close_log, file_log
 
 log = logging.getLogger(__name__)
 
@@ -185,9 +184,8 @@ class Job:
     def config(self):
         """The RunConfig, built as `papl-map run` builds it: config file, then the overrides, then the
         recording's camera, frame range, ground truth and extras."""
-        from papl_mapper.pipelines.config import RunConfig, with_extras, with_input
-
         from papl_mapper.config import load_config
+        from papl_mapper.pipelines.config import RunConfig, with_extras, with_input
 
         cfg = load_config(RunConfig, Path(self.config_file) if self.config_file else None, self.overrides)
         cfg = with_input(
@@ -316,9 +314,8 @@ def probe(job: Job, cached: dict[str, Any] | None = None) -> dict[str, Any]:
     Reused from `cached` (a finished job's probe) when the file's size, mtime and the frame range
     are unchanged; else the recording is opened and hashed (InputError when it cannot be opened).
     """
-    from papl_mapper.pipelines.run import _sha256
-
     from papl_mapper.frontend.video import open_recording
+    from papl_mapper.pipelines.run import _sha256
 
     path = Path(job.recording)
     try:
@@ -336,9 +333,8 @@ def probe(job: Job, cached: dict[str, Any] | None = None) -> dict[str, Any]:
 def frontend_key(job: Job, cfg, probed: dict[str, Any]) -> str:
     """The key `pipelines.run.run` gives the frontend checkpoint of this job (JSON text), from the
     same function. tests/test_batch.py checks it names the frontend checkpoint the run wrote."""
-    from papl_mapper.pipelines import checkpoint as ckpt
-
     from papl_mapper.frontend.camera import camera_for_recording
+    from papl_mapper.pipelines import checkpoint as ckpt
 
     with _quiet_logs():
         cam = camera_for_recording(cfg.input.camera, probed["width"], probed["height"], cfg.hfov_deg)
@@ -352,9 +348,8 @@ def job_key(job: Job, cfg, probed: dict[str, Any]) -> str:
     settings), the whole config (the stages' keys leave out what only the final outputs read) and
     the extras asked for. PaplError when the camera file cannot be read.
     """
-    from papl_mapper.pipelines.checkpoint import StageStore
-
     from papl_mapper.config import config_to_dict
+    from papl_mapper.pipelines.checkpoint import StageStore
 
     stages = StageStore(None, frontend_key(job, cfg, probed)).chain(copy.deepcopy(cfg))
     text = json.dumps(

@@ -29,10 +29,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from papl_mapper.pipelines.batch import EngineOptions, Job, Row, attempts, cpu_count, read_result, run_job
-
 from papl_mapper.errors import InputError
 from papl_mapper.extras import require
+from papl_mapper.pipelines.batch import EngineOptions, Job, Row, attempts, cpu_count, read_result, run_job
 
 log = logging.getLogger(__name__)
 

@@ -24,8 +24,6 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
-from papl_mapper.pipelines.config import RunConfig
-from papl_mapper.pipelines.summary import MappingStats
 
 from papl_mapper import __version__
 from papl_mapper.atomic import move_dir_into_place
@@ -36,6 +34,8 @@ from papl_mapper.map import Map, json_default
 from papl_mapper.mapping.incremental import Registration
 from papl_mapper.mapping.revisit import Revisit
 from papl_mapper.mapping.structure import AxisInputs
+from papl_mapper.pipelines.config import RunConfig
+from papl_mapper.pipelines.summary import MappingStats
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)

@@ -26,25 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from papl_mapper.pipelines import checkpoint as ckpt
-from papl_mapper.pipelines.checkpoint import StageStore
-from papl_mapper.pipelines.config import RunConfig
-from papl_mapper.pipelines.logfile import close_log, file_log
-from papl_mapper.pipelines.run_outputs import (
-    Extras,
-    check_before_work,
-    unmapped_trajectory,
-    write_extras,
-    write_outputs,
-    write_unmapped,
-)
-from papl_mapper.pipelines.summary import (
-    MappingStats,
-    RecordingInfo,
-    RunSummary,
-    per_frame_counts,
-    revisit_row,
-)
 
 from papl_mapper import __version__
 from papl_mapper.atomic import move_into_place
@@ -71,6 +52,25 @@ from papl_mapper.mapping.structure import structured_map, triangulate_map_lines,
 from papl_mapper.mapping.track_completion import complete_map
 from papl_mapper.mapping.windowed import WindowedRefiner
 from papl_mapper.outputs import add_outputs
+from papl_mapper.pipelines import checkpoint as ckpt
+from papl_mapper.pipelines.checkpoint import StageStore
+from papl_mapper.pipelines.config import RunConfig
+from papl_mapper.pipelines.logfile import close_log, file_log
+from papl_mapper.pipelines.run_outputs import (
+    Extras,
+    check_before_work,
+    unmapped_trajectory,
+    write_extras,
+    write_outputs,
+    write_unmapped,
+)
+from papl_mapper.pipelines.summary import (
+    MappingStats,
+    RecordingInfo,
+    RunSummary,
+    per_frame_counts,
+    revisit_row,
+)
 from papl_mapper.scale import scale_from_config
 from papl_mapper.tracks import Tracks
 from papl_mapper.trajectory_io import Trajectory

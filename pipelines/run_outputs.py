@@ -15,8 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from papl_mapper.pipelines.config import RunConfig, check_input
-from papl_mapper.pipelines.summary import RunSummary
 
 from papl_mapper.atomic import atomic_path, check_output_dir
 from papl_mapper.config import config_to_dict, dump_toml
@@ -24,6 +22,8 @@ from papl_mapper.errors import InputError
 from papl_mapper.extras import require
 from papl_mapper.map import Map, json_default
 from papl_mapper.outputs import add_outputs, begin_run
+from papl_mapper.pipelines.config import RunConfig, check_input
+from papl_mapper.pipelines.summary import RunSummary
 from papl_mapper.scale import check_config as check_scale_config
 from papl_mapper.trajectory_io import Trajectory, write_tum
 

@@ -20,13 +20,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from papl_mapper.pipelines.batch import frontend_key, probe, read_result
-from papl_mapper.pipelines.batch_inputs import assign_names, collect
-from papl_mapper.pipelines.config import RunConfig
 
 from papl_mapper.cli import main
 from papl_mapper.config import load_config
 from papl_mapper.errors import InputError
+from papl_mapper.pipelines.batch import frontend_key, probe, read_result
+from papl_mapper.pipelines.batch_inputs import assign_names, collect
+from papl_mapper.pipelines.config import RunConfig
 
 TINY = Path(__file__).resolve().parents[1] / "samples" / "tiny"
 DEMO = Path(__file__).resolve().parents[1] / "samples" / "demo"

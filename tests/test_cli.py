@@ -40,9 +40,8 @@ def test_run_help_names_every_preset():
     """The preset list in `run --help` is written out (the parser does not import the pipeline)."""
     import argparse
 
-    from papl_mapper.pipelines.config import PRESETS
-
     from papl_mapper.cli import run as run_cli
+    from papl_mapper.pipelines.config import PRESETS
 
     parser = argparse.ArgumentParser()
     run_cli.add_parser(parser.add_subparsers())

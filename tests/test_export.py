@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from papl_mapper.exporters import REGISTRY, ExportOptions, export, prepare, supported_suffixes
-from papl_mapper.exporters.gltf import srgb_to_linear
 from scipy.spatial.transform import Rotation
 
 from papl_mapper.errors import ConfigError, InputError, MapFormatError
+from papl_mapper.exporters import REGISTRY, ExportOptions, export, prepare, supported_suffixes
+from papl_mapper.exporters.gltf import srgb_to_linear
 from papl_mapper.map import Camera, Keyframes, Map, Points
 from papl_mapper.palette import UNANCHORED_RGB, VERTICAL_RGB
 from tests.conftest import make_map

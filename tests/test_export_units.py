@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 
 import pytest
-from papl_mapper.exporters import REGISTRY, export
 
+from papl_mapper.exporters import REGISTRY, export
 from papl_mapper.scale import ScaleEstimate, scale_map
 from tests.conftest import make_map
 from tests.test_export_views import read_view_svg

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from papl_mapper.exporters import export
 
 from papl_mapper.errors import InputError
+from papl_mapper.exporters import export
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
 from papl_mapper.scale import ScaleEstimate, scale_map
 

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from papl_mapper.gui import preview as P
 
 from papl_mapper.errors import BackendUnavailableError, InputError
+from papl_mapper.gui import preview as P
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
 from papl_mapper.palette import UNANCHORED_RGB, axis_colors
 

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from papl_mapper.errors import BackendUnavailableError, InputError
 from papl_mapper.gui import ReportOptions, build_report_html, preview, write_report
 from papl_mapper.gui.plots import stereonet_xy
 from papl_mapper.gui.preview import PreviewOptions
-
-from papl_mapper.errors import BackendUnavailableError, InputError
 from papl_mapper.map import Camera, Map
 
 from .test_gui_preview import building_map

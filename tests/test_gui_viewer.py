@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from papl_mapper.cli import main
 from papl_mapper.gui.viewer_pick import clearest_spot, line_facts, pick_point, pick_segment, to_pixels
 from papl_mapper.gui.viewer_scene import Filters, ViewerScene, line_rms_px
 from papl_mapper.gui.viewer_walk import FrameSource, keyframe_panel, open_frames, reproject_lines
-
-from papl_mapper.cli import main
 from papl_mapper.map import Map
 
 ROOT = Path(__file__).resolve().parents[1]

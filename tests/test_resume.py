@@ -19,18 +19,18 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import papl_mapper.pipelines.run as pipeline
-import papl_mapper.pipelines.run_outputs as run_outputs
 import pytest
-from papl_mapper.pipelines import checkpoint as ckpt
-from papl_mapper.pipelines.config import RunConfig
 
 import papl_mapper.mapping.adjust as adjust
 import papl_mapper.mapping.structure as structure
+import papl_mapper.pipelines.run as pipeline
+import papl_mapper.pipelines.run_outputs as run_outputs
 from papl_mapper.cli import main
 from papl_mapper.map import Map
 from papl_mapper.mapping.incremental import Registration
 from papl_mapper.mapping.revisit import Revisit
+from papl_mapper.pipelines import checkpoint as ckpt
+from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.tracks import Tracks
 
 TINY = Path(__file__).resolve().parents[1] / "samples" / "tiny"

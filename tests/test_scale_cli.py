@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from papl_mapper.exporters import export
 
 from papl_mapper.cli import main
+from papl_mapper.exporters import export
 from papl_mapper.map import Map
 from papl_mapper.trajectory_io import Trajectory, read_tum, write_tum
 from tests.test_scale import EYE_M, UNITS_PER_M, room_map
@@ -59,9 +59,10 @@ def test_known_length_rescales_every_output(run_dir: Path, capsys):
 
 
 def test_previews_and_report_follow_the_scale(run_dir: Path, capsys):
+    from PIL import Image
+
     from papl_mapper.gui.preview import PreviewOptions, render_views
     from papl_mapper.gui.report import write_report
-    from PIL import Image
 
     render_views(Map.load(run_dir / "map.papl"), run_dir / "previews", PreviewOptions(views=("top",)))
     write_report(run_dir, run_dir / "report.html")

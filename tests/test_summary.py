@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from papl_mapper.pipelines.summary import MappingStats, RecordingInfo, RunSummary
 
 

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from papl_mapper.exporters import ExportOptions
-from papl_mapper.exporters.trajectory import export_kitti, export_tum
 from scipy.spatial.transform import Rotation
 
 from papl_mapper.errors import InputError
+from papl_mapper.exporters import ExportOptions
+from papl_mapper.exporters.trajectory import export_kitti, export_tum
 from papl_mapper.map import Camera, Keyframes, Map
 from papl_mapper.trajectory_io import (
     TUM_HEADER,
