@@ -62,10 +62,8 @@ class BAConfig:
     image (pixels), besides the paper's inverse depth. The paper's form (False: n + 2 parameters per axis)
     holds each line on one ray through a single observation, so it can only slide in depth and keeps that
     observation's noise; with the offset (2n + 2, the minimal count for lines parallel to a known direction)
-    the line fits all its views: line error with pose noise 0.41x the orthonormal lines' (paper form 1.01x),
-    Xu's simulation 0.02-0.03 cm (paper form 0.9-2.2 cm), see benchmarks/line_representations.py. Off by
-    default because in the full pipeline it moved ATE by +0.012..+0.015 % of path on the demo, corridor
-    and garage 10 s walks (-0.006 on Atlanta) while raising line precision on three of them."""
+    the line fits all its views (benchmarks/line_representations.py). False here keeps a bare BAConfig in
+    the paper's form; `papl-map run` turns it on (pipelines/config.py), `--preset paper-anchors` off."""
     tvp_offset: bool = False
     """With anchor_offset, also give temporary-VP lines the offset (then 4 parameters, a general line); off
     keeps the paper's 3-parameter first stage (measured on the demo: the offset there cost ATE)."""
