@@ -70,3 +70,16 @@ def test_too_few_mapped_points_is_refused():
     tracks, X, _ = _two_views(0.0)
     res = register_relative(tracks, 1, 0, np.eye(4), {0: X[0], 1: X[1]}, RelativePoseConfig())
     assert not res.ok and "mapped points" in res.reason
+
+
+def test_two_disagreeing_scale_groups_are_refused_without_a_warning():
+    """Four mapped points, two at the true scale and two at twice it: the median falls between the groups,
+    none agrees with it, and the frame is refused in words (no NaN pose, no RuntimeWarning)."""
+    import warnings
+
+    tracks, X, _ = _two_views(0.0)
+    mapped = {0: X[0], 1: X[1], 2: 2.0 * X[2], 3: 2.0 * X[3]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        res = register_relative(tracks, 1, 0, np.eye(4), mapped, RelativePoseConfig(min_scale_points=2))
+    assert not res.ok and "agree on the step length" in res.reason

@@ -84,6 +84,8 @@ def register_relative(
     if not np.isfinite(s_med) or s_med <= 0:
         return PnPResult(False, reason="mapped points give no positive step length")
     agree = np.abs(s - s_med) <= cfg.scale_tolerance * s_med
+    if agree.sum() < cfg.min_scale_points:  # e.g. two clusters either side of an even count's median
+        return PnPResult(False, reason=f"only {int(agree.sum())} mapped points agree on the step length")
     T_fg = np.eye(4)
     T_fg[:3, :3], T_fg[:3, 3] = R, float(np.median(s[agree])) * t
     T_cw = T_fg @ T_cw_g
