@@ -3,8 +3,7 @@
 frontend (tracks) -> keyframe registration with windowed BA -> points-only global BA -> track
 completion, merging and retriangulation, and the points BA again -> line triangulation (temporary-VP
 stage) -> upright rotation, axes and soft association -> full global BA over
-points, anchored and orthonormal lines -> point and line track completion, axis update and
-re-association, and one more full BA for both -> every frame's pose.
+points, anchored and orthonormal lines -> axis update and a second BA -> every frame's pose.
 The frontend, registration, points BA and full BA are checkpointed in OUT/.checkpoint (see
 `pipelines/checkpoint.py`), so `--resume` after an interruption continues after the latest of them.
 `run` also owns the output folder: the checks before work, the outputs, log.txt, the extras and the
@@ -365,7 +364,6 @@ def map_tracks(
             m, axis_inputs = structured_map(tracks, m, lines, upright, cfg.axes, anchored)
         with timer.stage("ba_full"):
             m, stats.ba = _ba(m, cfg, progress, "BA (points + lines)")
-        again = []
         if cfg.completion.enabled and cfg.completion.after_full_ba:
             # as after the points BA: the better poses confirm more observations; the BA after it also
             # re-applies the error limits to the lines the first full BA placed
@@ -373,16 +371,8 @@ def map_tracks(
                 stats.completion_full_ba = complete_map(tracks, m, cfg.completion).as_dict()
                 if cfg.completion.lines:
                     stats.line_completion = complete_map_lines(tracks, m, cfg.completion, axis_inputs)
-            again.append("completed tracks")
-        if axis_inputs is not None and cfg.axes.update:
-            # on the first full BA's axes, with the merged lines' observations: one BA then serves both
-            with timer.stage("axis_update"):
-                changed, stats.axis_update = update_structure(m, axis_inputs, cfg.axes)
-            if changed:
-                again.append("axis update")
-        if again:
             with timer.stage("ba_full"):
-                m, stats.ba = _ba(m, cfg, progress, f"BA (points + lines, {' and '.join(again)})")
+                m, stats.ba = _ba(m, cfg, progress, "BA (points + lines, completed tracks)")
         _save(
             store,
             timer,
@@ -394,6 +384,12 @@ def map_tracks(
             line_track=tracks.line_track,
             stats=stats,
         )
+    if axis_inputs is not None and cfg.axes.update:
+        with timer.stage("axis_update"):
+            changed, stats.axis_update = update_structure(m, axis_inputs, cfg.axes)
+        if changed:
+            with timer.stage("ba_full"):
+                m, stats.ba = _ba(m, cfg, progress, "BA (after axis update)")
     dropped = drop_stray_lines(m, cfg.stray_line_margin)
     if dropped:
         log.info("%d lines reaching outside the points' extent dropped after BA", dropped)

@@ -127,10 +127,10 @@ CASES = {
     "registration": (lambda mp: mp.setattr(pipeline, "register_keyframes", _Boom(None)), 1, "frontend"),
     "ba_points": (_break_ba, 2, "registration"),
     "ba_full": (_break_ba, 3, "ba_points"),
-    "axis_update": (  # within the full-BA stage: between its completion and its last BA
+    "axis_update": (
         lambda mp: mp.setattr(structure, "update_axes", _Boom(structure.update_axes)),
-        3,
-        "ba_points",
+        4,
+        "ba_full",
     ),
     "writing outputs": (
         lambda mp: mp.setattr(run_outputs, "write_tum", _Boom(run_outputs.write_tum)),
