@@ -156,7 +156,7 @@ def verify_pair(
 
     The essential matrix, not the fundamental: with the camera known it has 5 degrees of freedom
     instead of 7, so look-alike textures (repeated tiles, doors) fit it far less often. USAC rather
-    than plain RANSAC: on wide-baseline pairs with few inliers it is about 10x faster. Under a pure
+    than plain RANSAC: far faster on wide-baseline pairs with few inliers. Under a pure
     rotation the matrix is degenerate, but its inliers still agree with the rotation, which is all
     that chaining tracks needs.
     """

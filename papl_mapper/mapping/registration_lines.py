@@ -43,17 +43,14 @@ class RegistrationLinesConfig:
     enabled: bool = False
     """Refine each registered frame's pose with the endpoint-to-line distances of the line tracks the
     keyframes so far triangulate (as well as its points and vanishing directions). Off: it did not
-    help where it should (benchmarks/registration_lines.py, whole job, same tracks): garage ATE median
-    over five irrelevant threshold changes 1.98 -> 2.34% (noise 0) and 1.55 -> 3.90% (noise 3), both
-    inside the 0.7-5.1% the garage swings over; corridor 0.563 -> 0.570%, 0.025 -> 0.034%; Atlanta
-    0.312 -> 0.223%, 0.324 -> 0.275%. The garage's scale breaks in its U-turn, and no line track spans
-    it (16-19 frames each, none seen both before and after, while 111 point tracks are): lines cannot
-    carry the scale across, and inside the turn few reach `min_plane_angle_deg` (0-6 used per frame)."""
+    help where it should, the garage, whose scale breaks in its U-turn where no line track spans the
+    turn, so lines cannot carry the scale across (benchmarks/registration_lines.py,
+    results/registration_lines.json; benchmarks/RESULTS.md)."""
     triangulation: LineInitConfig = field(default_factory=_triangulation_defaults)
     """Which tracks make a line: `min_views` counts registered keyframes, `min_plane_angle_deg` is the
     parallax, structural tracks only (`min_vp_fraction`, `max_vp_angle_deg`) as in the map's lines.
-    5 degrees, not the map's 1: with ground-truth poses the garage's lines from 1 degree lie 0.05 m
-    (median) / 1.0 m (90th percentile) off the true ones, from 5 degrees 0.025 / 0.05 m."""
+    5 degrees, not the map's 1: registration has no BA over lines to repair those from little parallax
+    (benchmarks/results/notes.md)."""
     below_inliers: int = 0
     """Use the lines only for poses with fewer PnP inliers than this (0: always)."""
     gate_px: float = 8.0

@@ -109,7 +109,8 @@ class SynthConfig:
     speed: float = 1.0
     """Walking speed in metres per second."""
     msaa: bool = False
-    """With supersampling, look textures up once per pixel (edges still anti-aliased): ~30% faster."""
+    """With supersampling, look textures up once per pixel (edges still anti-aliased): faster, a little
+    softer (benchmarks/results/notes.md)."""
     motion: str = "walk"
     """walk; rotation-start: stand and pan in place for pan_seconds, then walk; rotation-only: stand
     at the start and pan back and forth the whole time (pure rotation, no translation)."""

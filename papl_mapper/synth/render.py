@@ -72,7 +72,7 @@ class Renderer:
 
         Coverage and depth are resolved per sample; textures too, unless `msaa`: then they are looked
         up once per output pixel from a mip level for that rate (multisampling: edges stay
-        anti-aliased, textures are a little softer, rendering ~30% faster at 2x).
+        anti-aliased, textures are a little softer and rendering faster, benchmarks/results/notes.md).
         """
         self.scene = scene
         self.camera = camera
