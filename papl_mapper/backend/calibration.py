@@ -7,9 +7,9 @@ image motion supports. A straight walk leaves f free (scaling f and the lateral 
 together changes no image); the check then says so instead of guessing.
 
 A wrong f warps the whole trajectory (turns come out too wide or too narrow, drift piles up), and one
-global adjustment from that start stops near the wrong f (measured on the demo mapped with 0.8 f: 387
-px for a true 457). Short windows of consecutive keyframes are nearly undistorted by that, so each
-window is adjusted alone and the estimate is the median over the windows that pin f down.
+global adjustment from that start stops near the wrong f (benchmarks/results/notes.md). Short windows
+of consecutive keyframes are nearly undistorted by that, so each window is adjusted alone and the
+estimate is the median over the windows that pin f down.
 
 The adjustment is a small Levenberg-Marquardt in numpy with the points eliminated (Schur complement),
 not gtsam: gtsam's GeneralSFMFactor2 zeroes (and prints) every observation whose point falls behind
@@ -43,8 +43,8 @@ class FocalCheckConfig:
     """Run the check (a few seconds: one small bundle adjustment per window)."""
     warn_ratio: float = 0.05
     """Warn when the estimated focal length differs from the used one by more than this fraction...
-    (on the demo a 1.2% focal error already makes the trajectory error 6x larger: 1.57% vs 0.24% of the
-    path; maps made with the true f came out within 0.5% of it in benchmarks/focal_check.py)"""
+    (a few per cent of focal error already multiplies the trajectory error; maps made with the true f
+    come out well within it: benchmarks/focal_check.py, results/focal_check.json)"""
     n_sigma: float = 3.0
     """... and by more than this many standard deviations of the estimate."""
     max_rel_sigma: float = 0.03
@@ -68,8 +68,8 @@ class FocalCheckConfig:
     max_error_px: float = 8.0
     """Observations reprojecting further than this with the map's camera are left out as outliers."""
     max_iterations: int = 100
-    """Levenberg-Marquardt iterations per window at most (a window of a map built with a 35% wrong f
-    needs up to ~90; stopping at 40 left the demo's estimate 3% short of the truth, at 100 0.4%)."""
+    """Levenberg-Marquardt iterations per window at most (a window of a map built with a badly wrong f
+    needs many; fewer left the demo's estimate short of the truth: benchmarks/results/notes.md)."""
     screen_factor: float = 2.0
     """A window whose f is already this many times less observable than max_rel_sigma at the map's
     solution is not adjusted: its geometry (how the camera turns) decides what it can pin down, and
@@ -392,8 +392,8 @@ def adjust_focal(
     point cam.cx, cam.cy held) to observations obs_uv (K,2) of point obs_pt by keyframe obs_kf; f starts
     at f0 and is held there unless free_f. Gauge: the first pose held, and its distance to the farthest.
     Levenberg-Marquardt with Huber weights and the points eliminated by the Schur complement."""
-    # the systems are small (~100 unknowns after the Schur step): BLAS threads only cost here, up to
-    # 10x under load (measured with other jobs on the 2 cores)
+    # the systems are small (~100 unknowns after the Schur step): BLAS threads only cost here, most of
+    # all under load (other jobs on the cores)
     with threadpool_limits(limits=1, user_api="blas"):
         cfg = config or FocalCheckConfig()
         return _adjust_focal(T_wc, xyz, obs_pt, obs_kf, obs_uv, cam, f0, cfg, free_f, f_start)
