@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -63,3 +64,9 @@ def make_map(n_kf: int = 5, n_pts: int = 50, n_lines: int = 30, seed: int = 0) -
 @pytest.fixture
 def small_map() -> Map:
     return make_map()
+
+
+def default_sigint() -> None:
+    """`preexec_fn` for a child the test interrupts: SIGINT as a terminal's Ctrl-C reaches it, even when
+    the test runner inherited SIGINT ignored (a shell starts background jobs so) and would pass that on."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -28,6 +28,8 @@ from papl_mapper.pipelines.batch import frontend_key, probe, read_result
 from papl_mapper.pipelines.batch_inputs import assign_names, collect
 from papl_mapper.pipelines.config import RunConfig
 
+from .conftest import default_sigint
+
 TINY = Path(__file__).resolve().parents[1] / "samples" / "tiny"
 DEMO = Path(__file__).resolve().parents[1] / "samples" / "demo"
 FAST_SET = ["ba.max_iterations=3", "focal.enabled=false"]
@@ -112,7 +114,11 @@ def batch(tmp_path_factory) -> dict:
     out = root / "out"
     args = _papl_map("-q", "batch", str(manifest), "--out", str(out), "--report")
     proc = subprocess.Popen(
-        [*args, "--workers", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        [*args, "--workers", "1"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=default_sigint,
     )
     deadline = time.monotonic() + WAIT_S
     while not list((out / "b" / ".checkpoint").glob("frontend-*")):

@@ -33,6 +33,8 @@ from papl_mapper.pipelines import checkpoint as ckpt
 from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.tracks import Tracks
 
+from .conftest import default_sigint
+
 TINY = Path(__file__).resolve().parents[1] / "samples" / "tiny"
 FAST = ["--end", "1.2", "--set", "ba.max_iterations=3", "--set", "focal.enabled=false"]
 OUTPUTS = ("map.papl", "trajectory.tum", "keyframes.tum", "config.toml", "summary.json", "log.txt")
@@ -187,7 +189,9 @@ def test_a_real_ctrl_c_leaves_the_outputs_and_a_checkpoint_to_resume(ready, copi
     before = {name: (out / name).read_bytes() for name in OUTPUTS}
     args = [sys.executable, "-m", "papl_mapper.cli", "-q", "run", str(TINY / "video.mp4")]
     args += ["--camera", str(TINY / "camera.json"), "--out", str(out), "--resume", *FAST]
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint
+    )
     deadline = time.monotonic() + SIGINT_WAIT_S
     while not ready(out) and proc.poll() is None:
         assert time.monotonic() < deadline, f"{ready.__name__} did not happen"
