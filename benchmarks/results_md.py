@@ -212,21 +212,12 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
             "export.json": [Rows("formats", ("seconds", "peak_rss_mb", "file_size_mb"))],
             "export_libraries.json": [
                 Keys(("segments", "points", "product.*")),
-                Rows(
-                    "writers.ply",
-                    ("seconds", "size_mb", "same_bytes_as_hand_written", "seconds_over_hand_written"),
-                ),
-                Rows(
-                    "writers.ply_ascii",
-                    ("seconds", "size_mb", "same_bytes_as_hand_written", "seconds_over_hand_written"),
-                ),
-                Rows(
-                    "writers.tubes_ply",
-                    ("seconds", "size_mb", "same_bytes_as_hand_written", "seconds_over_hand_written"),
-                ),
-                Rows(
-                    "writers.glb",
-                    ("seconds", "size_mb", "same_bytes_as_hand_written", "seconds_over_hand_written"),
+                *(
+                    Rows(
+                        f"writers.{w}",
+                        ("seconds", "size_mb", "same_bytes_as_hand_written", "seconds_over_hand_written"),
+                    )
+                    for w in ("ply", "ply_ascii", "tubes_ply", "glb")
                 ),
             ],
             "map_io.json": [

@@ -34,6 +34,9 @@ from papl_mapper.map import Map
 
 log = logging.getLogger(__name__)
 
+GAUGE_SIGMA = 1e-3
+"""Sigma of the prior holding the gauge distance (first keyframe to the farthest), relative to it."""
+
 
 @dataclass
 class FocalCheckConfig:
@@ -412,14 +415,31 @@ def focal_sigma_at(
     """Standard deviation of f (pixels, unscaled by the residual level) from the normal equations at the
     given poses, points and f: what this window's geometry can pin f down to, before any adjustment."""
     T = np.asarray(T_wc, np.float64)
-    far = int(np.argmax(np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1)))
-    d0 = float(np.linalg.norm(T[far, :3, 3] - T[0, :3, 3]))
+    far, d0 = _scale_gauge(T)
     pp = np.array([cam.cx, cam.cy])
     with threadpool_limits(limits=1, user_api="blas"):
         sys_ = _normal_equations(
-            T, np.asarray(xyz, np.float64), f, pp, obs_pt, obs_kf, obs_uv, config, far, d0, 1e-3 * d0, True, f
+            T,
+            np.asarray(xyz, np.float64),
+            f,
+            pp,
+            obs_pt,
+            obs_kf,
+            obs_uv,
+            config,
+            far,
+            d0,
+            GAUGE_SIGMA * d0,
+            True,
+            f,
         )
         return math.sqrt(max(_marginal_f(sys_), 0.0))
+
+
+def _scale_gauge(T: np.ndarray) -> tuple[int, float]:
+    """The keyframe farthest from the first (row) and its distance: the monocular scale gauge."""
+    far = int(np.argmax(np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1)))
+    return far, float(np.linalg.norm(T[far, :3, 3] - T[0, :3, 3]))
 
 
 def _adjust_focal(
@@ -439,12 +459,11 @@ def _adjust_focal(
     N, P = len(T), len(X)
     pp = np.array([cam.cx, cam.cy])
     f = float(f0 if f_start is None or not free_f else f_start)
-    far = int(np.argmax(np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1)))
-    d0 = float(np.linalg.norm(T[far, :3, 3] - T[0, :3, 3]))
+    far, d0 = _scale_gauge(T)
     if d0 <= 0:
         raise GeometryError("focal adjustment: the keyframes do not translate (no scale gauge)")
     s_prior = config.f_prior_rel_sigma * f0
-    s_gauge = 1e-3 * d0
+    s_gauge = GAUGE_SIGMA * d0
     k_huber = config.huber_k * config.sigma_px
 
     def cost_at(T: np.ndarray, X: np.ndarray, f: float) -> float:
