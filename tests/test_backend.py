@@ -97,6 +97,26 @@ def test_custom_factor_jacobians(truth, offset):
     assert checked > 20
 
 
+def test_batched_cost_equals_the_graphs_error(truth):
+    """The BA's cost (line factors summed per batch) is gtsam's error of the whole graph, with every line
+    representation, with Huber active, and at values the batches have not seen (a retracted step)."""
+    m = perturb(truth, **START)
+    m.lines.state[:2] = LineState.TEMPORARY_VP
+    m.lines.obs_xy[:5] += 8.0
+    for cfg in (BAConfig(anchor_offset=True), BAConfig(), BAConfig(structural_lines="fixed_direction")):
+        pb = build_problem(m, cfg)
+        g = _build_graph(m, pb, cfg)
+        assert len(g.batches) >= 2
+        zero = g.values.zeroVectors()
+        step = gtsam.VectorValues()
+        for k in g.values.keys():
+            step.insert(k, np.full(len(zero.at(k)), 1e-3))
+        for vals in (g.values, g.values.retract(step)):
+            full = float(g.graph.error(vals))
+            assert g.error(vals) == pytest.approx(full, rel=1e-12)
+            assert g.error(vals) > float(g.base.error(vals))
+
+
 def test_huber_cost_and_irls_weight():
     from papl_mapper.backend.factors import huber_cost_residual, huber_sqrt_weight
 

@@ -166,6 +166,11 @@ class LineBatch:
 
         return error
 
+    def cost(self, values: gtsam.Values) -> float:
+        """The summed cost of every factor of the batch at `values` (gtsam's 0.5 |r|^2 per factor)."""
+        self.compute(values, False)
+        return 0.5 * float(np.sum(self.res_cost**2))
+
     def _fresh(self, checks: list[tuple[int, int, int]], values: gtsam.Values) -> bool:
         """Whether `values` holds, bit for bit, the variables of these checks that the batch was computed
         from (bytes comparison: five times cheaper than np.array_equal, and as exact)."""
