@@ -125,3 +125,9 @@ def test_a_walk_is_not_oriented_as_a_rotation():
     tracks = _room_tracks(walk, 0.3)
     filled = fill_rotation_only(tracks, {29: walk[29]}, RotationOnlyConfig())
     assert len(filled) <= 2
+
+
+def test_one_frame_is_reported_as_too_few_frames():
+    tracks = _room_tracks(_pan(1, 0.0))
+    with pytest.raises(UnmappableError, match="too few frames: 1 decoded frame"):
+        register_keyframes(tracks)

@@ -235,6 +235,11 @@ def register_keyframes(
         segments.append(reg)
         start = end + 1
     if not segments:
+        if len(tracks) < 2:
+            raise UnmappableError(
+                f"too few frames: {len(tracks)} decoded frame, a map needs at least two views of the place "
+                "from different positions; give a longer recording (or check --start/--end/--step)"
+            )
         turned = rotation_only_recording(tracks, cfg.rotation_only) if cfg.rotation_only.enabled else None
         if (
             turned is not None
