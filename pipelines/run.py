@@ -299,6 +299,7 @@ def _map_recording(
             checkpoints_written=store.written,
             per_frame=per_frame_counts(tracks),
         )
+        _warn_partial(summary.frames_lost, len(tracks), cam_src.guessed)
         timer.current = "writing outputs"
         write_outputs(out, m, traj, cfg, summary)
         store.prune()
@@ -460,3 +461,27 @@ __all__ = [
     "map_tracks",
     "run",
 ]
+
+
+#: Above this fraction of frames without a pose the run warns that the map is partial.
+PARTIAL_WARN_FRACTION = 0.2
+
+
+def _warn_partial(lost: int, frames: int, guessed_camera: bool) -> None:
+    """A warning, not silence, when much of the recording has no pose: the map covers only part of it,
+    which a wrong camera file (intrinsics, distortion) causes as often as the recording itself."""
+    if frames == 0 or lost <= PARTIAL_WARN_FRACTION * frames:
+        return
+    cause = (
+        "the guessed intrinsics (give --camera)"
+        if guessed_camera
+        else "the camera file (intrinsics, distortion)"
+    )
+    log.warning(
+        "%d of %d frames (%.0f%%) have no pose: the map covers only part of the recording; check %s, "
+        "or the frames without a pose in summary.json's per_frame (too little texture or motion blur)",
+        lost,
+        frames,
+        100.0 * lost / frames,
+        cause,
+    )

@@ -18,7 +18,14 @@ def _cam(dist):
 
 
 @pytest.mark.parametrize(
-    "dist", [[0, 0, 0, 0, 0], [-0.28, 0.07, 0, 0, 0], [-0.4, 0.2, 0.001, -0.001, -0.05], [0.15, 0, 0, 0, 0]]
+    "dist",
+    [
+        [0, 0, 0, 0, 0],
+        [-0.28, 0.07, 0, 0, 0],
+        [-0.4, 0.2, 0.001, -0.001, -0.05],
+        [0.15, 0, 0, 0, 0],
+        [0.5, 0, 0, 0, 0],
+    ],
 )
 def test_lens_like_distortion_passes(dist):
     check_distortion(_cam(dist), "cam.json")
@@ -26,7 +33,12 @@ def test_lens_like_distortion_passes(dist):
 
 @pytest.mark.parametrize(
     ("dist", "what"),
-    [([1e6, 0, 0, 0, 0], "squeezing"), ([-2.0, 0, 0, 0, 0], "folds"), ([0, -50.0, 0, 0, 0], "folds")],
+    [
+        ([1e6, 0, 0, 0, 0], "squeezing"),
+        ([5.0, 0, 0, 0, 0], "squeezing"),
+        ([-2.0, 0, 0, 0, 0], "folds"),
+        ([0, -50.0, 0, 0, 0], "folds"),
+    ],
 )
 def test_absurd_distortion_is_refused(dist, what):
     with pytest.raises(InputError, match=what):

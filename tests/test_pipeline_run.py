@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -156,3 +157,18 @@ def test_guessed_focal_length_is_flagged(tmp_path):
     assert focal["plausible"] is False
     assert abs(focal["f_estimated"] / 457.0 - 1) < MAX_FOCAL_ESTIMATE_ERR
     assert "focal length looks wrong" in (tmp_path / "log.txt").read_text()
+
+
+def test_a_partial_map_is_warned_about(caplog):
+    """More than PARTIAL_WARN_FRACTION of the frames without a pose: one warning naming the likely cause."""
+    from papl_mapper.pipelines.run import PARTIAL_WARN_FRACTION, _warn_partial
+
+    with caplog.at_level(logging.WARNING, logger="papl_mapper.pipelines.run"):
+        _warn_partial(int(PARTIAL_WARN_FRACTION * 100), 100, guessed_camera=False)
+        assert not caplog.records
+        _warn_partial(31, 75, guessed_camera=False)
+        _warn_partial(40, 75, guessed_camera=True)
+    assert [r.levelno for r in caplog.records] == [logging.WARNING] * 2
+    assert "31 of 75 frames (41%) have no pose" in caplog.records[0].getMessage()
+    assert "camera file" in caplog.records[0].getMessage()
+    assert "--camera" in caplog.records[1].getMessage()

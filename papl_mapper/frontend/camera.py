@@ -365,8 +365,12 @@ def check_intrinsics(camera: Camera, name: str) -> None:
 
 
 MAX_CORNER_STRETCH = 2.5
-"""Largest factor by which undistortion may move the image corners away from or towards the centre:
-wide-angle lenses reach about 1.5 within the pinhole-plus-radial model; beyond, it is a wrong file."""
+"""Largest factor by which undistortion may move the image corners away from the centre (barrel
+distortion): wide-angle lenses reach about 1.5 within the pinhole-plus-radial model; beyond, it is a
+wrong file."""
+MAX_CORNER_SQUEEZE = 1.5
+"""Largest factor by which undistortion may move the image corners towards the centre (pincushion
+distortion): lenses stay within a few percent; a third of the radius is already a wrong file."""
 
 
 def check_distortion(camera: Camera, name: str) -> None:
@@ -394,7 +398,7 @@ def check_distortion(camera: Camera, name: str) -> None:
             "the coefficients and their order (k1 k2 p1 p2 k3)"
         )
     ru = float(np.interp(rc, rd[: branch + 1], r[: branch + 1]))
-    if ru < rc / MAX_CORNER_STRETCH:
+    if ru < rc / MAX_CORNER_SQUEEZE:
         raise InputError(
             f"{name}: implausible distortion (k1 {k1:g}, k2 {k2:g}, k3 {k3:g}): the image corners undistort "
             f"to {ru / rc:.3f} times their radius, squeezing the view; check the coefficients and their "
