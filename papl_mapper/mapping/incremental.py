@@ -1,4 +1,5 @@
-"""Incremental keyframe registration from point tracks: initialise, PnP, triangulate, repeat.
+"""Incremental keyframe registration from point tracks: initialise, PnP, triangulate, repeat; a frame
+with too few points is registered by its relative pose to the last keyframe, or else from its lines.
 
 This gives the first estimate of keyframe poses and points; line triangulation, axis
 management and bundle adjustment refine it. Poses are `T_cw` (world to camera) here because
@@ -76,7 +77,8 @@ class IncrementalConfig:
     merge_tolerance: float = 0.05
     """Largest point disagreement after the Sim(3), as a fraction of the map's median point spread."""
     track_lines: RegistrationLinesConfig = field(default_factory=RegistrationLinesConfig)
-    """Line tracks triangulated from the keyframes so far refine each frame's pose with the points."""
+    """Line tracks triangulated from the keyframes so far: they refine each frame's pose with the points
+    (when enabled) and pose the frames points cannot (`pnp.from_lines`)."""
 
 
 @dataclass

@@ -25,7 +25,9 @@ Call sites (`track_pnp` takes the extra terms as keywords; without them it is un
     dirs_c=frame_directions(tracks, f), dirs_sigma_deg=sigma)`;
 (b) all-frames trajectory, `mapping.frames.frame_poses`: `refiner = FrameRefiner.from_map(tracks, m,
     pnp.refine)` before the loop, then after a successful PnP
-    `T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])`.
+    `T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])`;
+(c) `tracking.pose_from_lines`, for frames with too few points: lines and directions always on, and
+    `pose_std` to accept the result only where its terms fix it.
 benchmarks/pose_refine.py monkeypatches both exactly so.
 """
 
