@@ -198,9 +198,10 @@ def pose_from_lines(
     The rotation is the guess's turned onto the frame's vanishing directions matched to the world
     directions (`geometry.resection.rotation_from_directions`); given it, centre hypotheses from random
     minimal sets of points and lines (`centre_equations`) are scored by the features they explain;
-    the best one's inliers are refitted, then refined by LM on point and line reprojection and the
-    directions together. The pose counts as tracked only when enough lines agree and its inliers fix
-    it (rotation and centre uncertainty under `config.from_lines`' limits).
+    the best one is refined on its inliers by LM on point and line reprojection and the directions
+    together (the rotation too: one direction leaves the turn about it to the lines and points).
+    The pose counts as tracked only when enough lines agree and its inliers fix it (rotation and
+    centre uncertainty under `config.from_lines`' limits).
     """
     cfg = config or PnPConfig()
     lc, rc = cfg.from_lines, cfg.refine
@@ -287,7 +288,7 @@ def pose_from_lines(
 
 
 def _line_depths(T_cw: np.ndarray, L_w: np.ndarray) -> np.ndarray:
-    """Camera depth (M,) of each world line's point closest to the camera centre."""
+    """Distance (M,) from the camera centre to each world line (the depth of its nearest point)."""
     L_c = plucker_to_camera(L_w, invert(T_cw))
     n_c, v_c = L_c[:, :3], L_c[:, 3:]
     P = np.cross(v_c, n_c) / np.sum(v_c * v_c, 1, keepdims=True)
