@@ -300,7 +300,7 @@ def _extend(
                 tracks, f, last_keyframe, reg.T_cw[last_keyframe], reg.points_w, cfg.relative_pose, seed
             )
             res = rel if rel.ok else res
-        if (res is None or not res.ok) and lines is not None and cfg.pnp.from_lines.enabled:
+        if res is None or not res.ok:
             # too few points at all (blank walls): the lines and directions the frame sees hold the pose
             res = _pose_from_lines(tracks, reg, f, last_T, cfg, dirs, lines, seed) or res
         if res is None or not res.ok:
@@ -344,7 +344,7 @@ def _extend(
     for g in range(f1 - 1, start - 1, -1):
         guess = reg.T_cw[min(reg.T_cw)]
         res, _ = _pnp(tracks, reg, g, guess, cfg, dirs, lines, seed)
-        if (res is None or not res.ok) and lines is not None and cfg.pnp.from_lines.enabled:
+        if res is None or not res.ok:
             res = _pose_from_lines(tracks, reg, g, guess, cfg, dirs, lines, seed) or res
         if res is None or not res.ok:
             break
@@ -487,11 +487,14 @@ def _pose_from_lines(
     guess: np.ndarray,
     cfg: IncrementalConfig,
     dirs: RegistrationDirections | None,
-    lines: RegistrationLines,
+    lines: RegistrationLines | None,
     seed: int = 0,
 ) -> PnPResult | None:
     """Frame f posed from the line tracks the keyframes so far triangulate, its vanishing directions and
-    its few mapped points (`tracking.pose_from_lines`); None when it sees fewer lines than it needs."""
+    its few mapped points (`tracking.pose_from_lines`); None when that is off or the frame sees fewer
+    lines than it needs."""
+    if lines is None or not cfg.pnp.from_lines.enabled:
+        return None
     lines_w, line_xy, _ = lines.frame_lines(f, reg.T_cw)
     if len(lines_w) < cfg.pnp.from_lines.min_lines:
         return None
