@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from papl_mapper.geometry.lines import line_distance, line_parallax_deg, plucker_from_endpoints
 from papl_mapper.geometry.se3 import retract, rotation_angle_deg
+from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.map import Camera
 from papl_mapper.mapping.incremental import IncrementalConfig, register_keyframes
 from papl_mapper.mapping.lines import LineInitConfig
 from papl_mapper.mapping.registration_lines import RegistrationLines, RegistrationLinesConfig
-from papl_mapper.mapping.tracking import PnPConfig, track_pnp
+from papl_mapper.mapping.tracking import LinePoseConfig, PnPConfig, track_pnp
 from papl_mapper.tracks import Tracks
 
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
@@ -270,9 +273,36 @@ def test_registration_with_lines(noise_px: float) -> None:
     poses = {**reg.T_cw_frames, **reg.T_cw}
     est = np.stack([-poses[f][:3, :3].T @ poses[f][:3, 3] for f in frames])
     gt = np.stack([-T[:3, :3].T @ T[:3, 3] for T in T_true])
-    from papl_mapper.geometry.similarity import umeyama
-
     sim = umeyama(est, gt)
     err = np.linalg.norm(sim.apply(est) - gt, axis=1)
     path = np.linalg.norm(np.diff(gt, axis=0), axis=1).sum()
     assert np.sqrt(np.mean(err**2)) < MAX_REL_POSITION_ERR * path
+
+
+def _blank_stretch(tracks: Tracks, frames: range, keep: int) -> Tracks:
+    """The tracks with every point of `frames` dropped but the `keep` lowest track ids (blank walls)."""
+    drop = np.isin(tracks.point_frame, list(frames)) & (tracks.point_track >= keep)
+    return dataclasses.replace(
+        tracks,
+        point_frame=tracks.point_frame[~drop],
+        point_track=tracks.point_track[~drop],
+        point_uv=tracks.point_uv[~drop],
+    )
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 0.5])
+def test_lines_pose_a_stretch_without_points(noise_px: float) -> None:
+    tracks, T_true, _, _ = _scene(n_frames=24, noise_px=noise_px, seed=3)
+    blank = range(12, 16)
+    tracks = _blank_stretch(tracks, blank, keep=4)
+    off = IncrementalConfig(pnp=PnPConfig(from_lines=LinePoseConfig(enabled=False)))
+    assert set(blank) <= set(register_keyframes(tracks, off).lost)  # PnP needs more than 4 points
+    reg = register_keyframes(tracks, IncrementalConfig())
+    assert not reg.lost
+    poses = {**reg.T_cw_frames, **reg.T_cw}
+    est = np.stack([-poses[f][:3, :3].T @ poses[f][:3, 3] for f in range(len(tracks))])
+    gt = np.stack([-T[:3, :3].T @ T[:3, 3] for T in T_true])
+    sim = umeyama(est, gt)
+    err = np.linalg.norm(sim.apply(est) - gt, axis=1)
+    path = np.linalg.norm(np.diff(gt, axis=0), axis=1).sum()
+    assert err[list(blank)].max() < MAX_REL_POSITION_ERR * path

@@ -1,4 +1,5 @@
-"""Incremental keyframe registration from point tracks: initialise, PnP, triangulate, repeat.
+"""Incremental keyframe registration from point tracks: initialise, PnP, triangulate, repeat; a frame
+with too few points is registered by its relative pose to the last keyframe, or else from its lines.
 
 This gives the first estimate of keyframe poses and points; line triangulation, axis
 management and bundle adjustment refine it. Poses are `T_cw` (world to camera) here because
@@ -24,7 +25,7 @@ from papl_mapper.mapping.registration_lines import RegistrationLines, Registrati
 from papl_mapper.mapping.relative_pose import RelativePoseConfig, register_relative
 from papl_mapper.mapping.revisit import Revisit, RevisitConfig, TrackIndex, close_loop, find_revisit
 from papl_mapper.mapping.rotation_only import RotationOnlyConfig, rotation_only_recording
-from papl_mapper.mapping.tracking import PnPConfig, PnPResult, track_pnp
+from papl_mapper.mapping.tracking import PnPConfig, PnPResult, pose_from_lines, track_pnp
 from papl_mapper.tracks import PointRows, Tracks
 
 log = logging.getLogger(__name__)
@@ -76,7 +77,8 @@ class IncrementalConfig:
     merge_tolerance: float = 0.05
     """Largest point disagreement after the Sim(3), as a fraction of the map's median point spread."""
     track_lines: RegistrationLinesConfig = field(default_factory=RegistrationLinesConfig)
-    """Line tracks triangulated from the keyframes so far refine each frame's pose with the points."""
+    """Line tracks triangulated from the keyframes so far: they refine each frame's pose with the points
+    (when enabled) and pose the frames points cannot (`pnp.from_lines`)."""
 
 
 @dataclass
@@ -287,7 +289,8 @@ def _extend(
     rc = cfg.pnp.refine
     use_dirs = rc.enabled and rc.directions and rc.in_registration
     dirs = RegistrationDirections(tracks, vertical_only=rc.vertical_only) if use_dirs else None
-    lines = RegistrationLines(tracks, cfg.track_lines) if cfg.track_lines.enabled else None
+    use_lines = cfg.track_lines.enabled or cfg.pnp.from_lines.enabled
+    lines = RegistrationLines(tracks, cfg.track_lines) if use_lines else None
     rows = PointRows(tracks)
     f = f1
     for f in range(f1 + 1, len(tracks)):
@@ -302,6 +305,9 @@ def _extend(
                 tracks, f, last_keyframe, reg.T_cw[last_keyframe], reg.points_w, cfg.relative_pose, seed
             )
             res = rel if rel.ok else res
+        if res is None or not res.ok:
+            # too few points at all (blank walls): the lines and directions the frame sees hold the pose
+            res = _pose_from_lines(tracks, reg, f, last_T, cfg, dirs, lines, seed) or res
         if res is None or not res.ok:
             log.debug("frame %d not registered: %s", f, "no map points" if res is None else res.reason)
             misses += 1
@@ -341,7 +347,10 @@ def _extend(
             progress(f + 1, len(tracks), f"{len(reg.frames)} keyframes, {len(reg.points_w)} points")
     # frames between the segment's start and its initialisation pair are tracked backwards
     for g in range(f1 - 1, start - 1, -1):
-        res, _ = _pnp(tracks, reg, g, reg.T_cw[min(reg.T_cw)], cfg, dirs, lines, seed)
+        guess = reg.T_cw[min(reg.T_cw)]
+        res, _ = _pnp(tracks, reg, g, guess, cfg, dirs, lines, seed)
+        if res is None or not res.ok:
+            res = _pose_from_lines(tracks, reg, g, guess, cfg, dirs, lines, seed) or res
         if res is None or not res.ok:
             break
         reg.T_cw[g] = res.T_cw
@@ -450,8 +459,9 @@ def _pnp(
         return None, len(ids)
     X = np.stack([reg.points_w[int(t)] for t in ids[known]])
     # the line tracks the keyframes so far triangulate hold the pose where points are few
-    lines_w, line_xy, _ = lines.frame_lines(f, reg.T_cw) if lines is not None else (None, None, None)
-    pnp = cfg.pnp if lines is None else lines.pnp_config(cfg.pnp)
+    refine_lines = lines is not None and cfg.track_lines.enabled
+    lines_w, line_xy, _ = lines.frame_lines(f, reg.T_cw) if refine_lines else (None, None, None)
+    pnp = lines.pnp_config(cfg.pnp) if refine_lines else cfg.pnp
     if dirs is None:
         res = track_pnp(
             X, uv[known], tracks.camera.K, guess, pnp, lines_w=lines_w, line_xy=line_xy, seed=seed
@@ -473,3 +483,41 @@ def _pnp(
         seed=seed,
     )
     return res, len(ids)
+
+
+def _pose_from_lines(
+    tracks: Tracks,
+    reg: Registration,
+    f: int,
+    guess: np.ndarray,
+    cfg: IncrementalConfig,
+    dirs: RegistrationDirections | None,
+    lines: RegistrationLines | None,
+    seed: int = 0,
+) -> PnPResult | None:
+    """Frame f posed from the line tracks the keyframes so far triangulate, its vanishing directions and
+    its few mapped points (`tracking.pose_from_lines`); None when that is off or the frame sees fewer
+    lines than it needs."""
+    if lines is None or not cfg.pnp.from_lines.enabled:
+        return None
+    lines_w, line_xy, _ = lines.frame_lines(f, reg.T_cw)
+    if len(lines_w) < cfg.pnp.from_lines.min_lines:
+        return None
+    ids, uv = tracks.points_in(f)
+    known = np.array([t in reg.points_w for t in ids.tolist()], bool)
+    X = np.stack([reg.points_w[int(t)] for t in ids[known]]) if known.any() else np.zeros((0, 3))
+    dirs_w = dirs(reg.T_cw)[0] if dirs is not None else None
+    res = pose_from_lines(
+        X,
+        uv[known],
+        tracks.camera.K,
+        guess,
+        lines_w,
+        line_xy,
+        cfg.pnp,
+        dirs_w=dirs_w,
+        dirs_c=frame_directions(tracks, f),
+        seed=seed,
+    )
+    log.debug("frame %d from lines: %s", f, res.reason)
+    return res

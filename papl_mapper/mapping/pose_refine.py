@@ -25,7 +25,9 @@ Call sites (`track_pnp` takes the extra terms as keywords; without them it is un
     dirs_c=frame_directions(tracks, f), dirs_sigma_deg=sigma)`;
 (b) all-frames trajectory, `mapping.frames.frame_poses`: `refiner = FrameRefiner.from_map(tracks, m,
     pnp.refine)` before the loop, then after a successful PnP
-    `T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])`.
+    `T_cw, _ = refiner.refine(f, res.T_cw, X[res.inliers], uv[res.inliers])`;
+(c) `tracking.pose_from_lines`, for frames with too few points: lines and directions always on, and
+    `pose_std` to accept the result only where its terms fix it.
 benchmarks/pose_refine.py monkeypatches both exactly so.
 """
 
@@ -117,7 +119,7 @@ class RefineStats:
 
 def _huber_weights(e: np.ndarray, k: float) -> np.ndarray:
     """IRLS weights of the Huber loss for normalised error norms e."""
-    return np.where(e <= k, 1.0, k / np.maximum(e, 1e-300))
+    return np.where(e <= k, 1.0, k / np.maximum(e, k))  # (the max only keeps the unused branch finite)
 
 
 def _huber_cost(e: np.ndarray, k: float) -> float:
@@ -255,6 +257,50 @@ def points_rotation_std_deg(
     except np.linalg.LinAlgError:
         return float("inf")
     return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
+
+
+def pose_std(
+    T_cw: np.ndarray,
+    points_w: np.ndarray,
+    uv: np.ndarray,
+    K: np.ndarray,
+    *,
+    lines_w: np.ndarray | None = None,
+    line_xy: np.ndarray | None = None,
+    dirs_w: np.ndarray | None = None,
+    dirs_c: np.ndarray | None = None,
+    config: PoseRefineConfig | None = None,
+) -> tuple[float, float]:
+    """Largest 1-sigma rotation (deg) and camera-centre (world units) uncertainty of a pose from all its
+    terms (Gauss-Newton covariance of the robust cost, each term at its config sigma); inf, inf when
+    the terms do not fix the pose. The centre moves by -R^T nu under the left perturbation, so its
+    covariance is the nu block's."""
+    cfg = config or PoseRefineConfig()
+    L_w = _as_plucker(lines_w) if lines_w is not None and len(lines_w) else np.zeros((0, 6))
+    xy = np.asarray(line_xy, np.float64).reshape(-1, 4) if len(L_w) else np.zeros((0, 4))
+    d_w = np.asarray(dirs_w, np.float64).reshape(-1, 3) if dirs_w is not None else np.zeros((0, 3))
+    d_c = np.asarray(dirs_c, np.float64).reshape(-1, 3) if dirs_c is not None else np.zeros((0, 3))
+    prob = _Problem(
+        K,
+        np.asarray(points_w, np.float64).reshape(-1, 3),
+        np.asarray(uv, np.float64).reshape(-1, 2),
+        L_w,
+        xy,
+        d_w,
+        d_c,
+        np.full(len(d_w), np.radians(cfg.direction_sigma_deg)),
+        cfg,
+    )
+    H, _, _ = prob.normal_equations(np.asarray(T_cw, np.float64))
+    try:
+        cov = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return float("inf"), float("inf")
+    if not np.isfinite(cov).all() or np.linalg.cond(H) > 1e14:
+        return float("inf"), float("inf")
+    rot = np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
+    centre = np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))
+    return float(rot), float(centre)
 
 
 def _as_plucker(lines_w: np.ndarray) -> np.ndarray:

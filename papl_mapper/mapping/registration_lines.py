@@ -8,10 +8,12 @@ with `triangulation`'s thresholds), and re-triangulated when a keyframe that see
 (windowed BA, loop closure). Triangulation is lazy: a track is (re)made only when a frame that sees it
 asks for its lines, so a frame costs the tracks it sees, not the map.
 
-Off by default (`RegistrationLinesConfig.enabled`: measured, it does not hold the garage's U-turn).
+Refining every pose with them is off by default (`RegistrationLinesConfig.enabled`: measured, it does
+not hold the garage's U-turn); the frames that neither PnP nor the relative pose can register are posed
+from them (`tracking.pose_from_lines`, `mapping.pnp.from_lines`).
 `RegistrationLines(tracks, config).frame_lines(f, reg.T_cw)` gives the world Pluecker lines (M, 6) and
-the frame's observed segments (M, 4), the form `track_pnp(lines_w=..., line_xy=...)` takes; `pnp_config`
-turns the line term of the refinement on for those calls.
+the frame's observed segments (M, 4), the form `track_pnp(lines_w=..., line_xy=...)` and
+`pose_from_lines` take; `pnp_config` turns the line term of the refinement on for `track_pnp`.
 """
 
 from __future__ import annotations

@@ -2,23 +2,56 @@
 
 Given the map lines seen in the frame and the world directions of the vanishing points, the pose is
 then refined with line reprojection and the vanishing-direction rotation constraint too
-(mapping/pose_refine.py); without them the points-only LM pose is the result.
+(mapping/pose_refine.py); without them the points-only LM pose is the result. Where the points are
+too few for PnP (blank walls), `pose_from_lines` poses the frame from what is left, as the paper's
+tracking does: rotation from its vanishing directions, centre from its lines and points given it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
+from papl_mapper.geometry.lines import endpoint_errors, plucker_to_camera
+from papl_mapper.geometry.resection import centre_equations, rotation_from_directions
+from papl_mapper.geometry.se3 import invert, make_T
 from papl_mapper.mapping.pose_refine import (
     PoseRefineConfig,
     RefineStats,
     match_directions,
+    point_residuals,
     points_rotation_std_deg,
+    pose_std,
     refine_pose,
 )
+
+
+@dataclass
+class LinePoseConfig:
+    """When and how a frame that PnP cannot pose is posed from its lines, points and directions."""
+
+    enabled: bool = True
+    """Pose frames with too few point inliers from the map lines they see (`pose_from_lines`); only
+    frames PnP fails on are affected."""
+    min_lines: int = 2
+    """Fewest line inliers: the lines must carry the pose, or the points alone would have."""
+    min_constraints: int = 8
+    """Fewest equations on the pose from the inliers (2 per point, 2 per line, 2 per direction): the
+    6 unknowns and a margin that lets a wrong feature show."""
+    hypothesis_px: float = 8.0
+    """Inlier threshold (px, points and line endpoints) of the centre hypotheses: the rotation they
+    are made under is the guess's about any axis no direction fixes."""
+    line_threshold_px: float = 2.0
+    """An observed endpoint within this of its projected line counts the line as an inlier."""
+    iterations: int = 200
+    """Centre hypotheses from random minimal feature sets."""
+    max_rotation_std_deg: float = 1.0
+    """Largest 1-sigma rotation uncertainty of the final pose from its inliers."""
+    max_centre_std: float = 0.02
+    """Largest 1-sigma centre uncertainty of the final pose, as a fraction of the median feature depth."""
 
 
 @dataclass
@@ -33,6 +66,8 @@ class PnPConfig:
     """RANSAC iterations."""
     refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
     """Refinement with lines and vanishing directions after PnP (when the caller passes them)."""
+    from_lines: LinePoseConfig = field(default_factory=LinePoseConfig)
+    """Where PnP fails: the pose from lines, directions and the few points (when the caller passes lines)."""
 
 
 @dataclass
@@ -142,3 +177,119 @@ def track_pnp(
         )
     rms = float(np.sqrt(np.mean(err[mask] ** 2)))
     return PnPResult(True, T_cw, mask, rms, f"{int(mask.sum())}/{n} inliers, rms {rms:.2f} px", stats)
+
+
+def pose_from_lines(
+    points_w: np.ndarray,
+    pixels: np.ndarray,
+    K: np.ndarray,
+    T_cw_guess: np.ndarray,
+    lines_w: np.ndarray,
+    line_xy: np.ndarray,
+    config: PnPConfig | None = None,
+    *,
+    dirs_w: np.ndarray | None = None,
+    dirs_c: np.ndarray | None = None,
+    seed: int = 0,
+) -> PnPResult:
+    """Pose of a frame whose points are too few for PnP, from map lines (M, 6) Pluecker
+    seen as segments (M, 4) px, the few map points (N, 3) at pixels (N, 2) and the vanishing directions.
+
+    The rotation is the guess's turned onto the frame's vanishing directions matched to the world
+    directions (`geometry.resection.rotation_from_directions`); given it, centre hypotheses from random
+    minimal sets of points and lines (`centre_equations`) are scored by the features they explain;
+    the best one is refined on its inliers by LM on point and line reprojection and the directions
+    together (the rotation too: one direction leaves the turn about it to the lines and points).
+    The pose counts as tracked only when enough lines agree and its inliers fix it (rotation and
+    centre uncertainty under `config.from_lines`' limits).
+    """
+    cfg = config or PnPConfig()
+    lc, rc = cfg.from_lines, cfg.refine
+    points_w = np.asarray(points_w, np.float64).reshape(-1, 3)
+    pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
+    L_w = np.asarray(lines_w, np.float64).reshape(-1, 6)
+    line_xy = np.asarray(line_xy, np.float64).reshape(-1, 4)
+    n, m = len(points_w), len(L_w)
+    if m < lc.min_lines:
+        return PnPResult(False, reason=f"{n} map points and {m} map lines (need {lc.min_lines} lines)")
+    d_w = d_c = np.zeros((0, 3))
+    if dirs_w is not None and dirs_c is not None and len(dirs_w):
+        d_w, d_c, _ = match_directions(T_cw_guess[:3, :3], dirs_w, dirs_c, rc.match_direction_deg)
+    R = rotation_from_directions(T_cw_guess[:3, :3], d_w, d_c)
+    A, y, feature = centre_equations(R, K, points_w, pixels, L_w, line_xy)
+
+    def errors(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        e_pt = np.linalg.norm(point_residuals(T, points_w, pixels, K), axis=1)
+        e_pt[(points_w @ T[2, :3] + T[2, 3]) <= 0] = np.inf
+        with np.errstate(invalid="ignore", divide="ignore"):
+            e_ln = np.abs(endpoint_errors(K, plucker_to_camera(L_w, invert(T)), line_xy)).max(axis=1)
+        return e_pt, np.nan_to_num(e_ln, nan=np.inf)
+
+    def score(e_pt: np.ndarray, e_ln: np.ndarray, thr: float) -> int:
+        return 2 * int((e_pt < thr).sum()) + int((e_ln < thr).sum())
+
+    rng = np.random.default_rng(seed)
+    C_guess = invert(T_cw_guess)[:3, 3]
+    best_C = C_guess
+    best = score(*errors(make_T(R, -R @ C_guess)), lc.hypothesis_px)
+    rows_of = [np.flatnonzero(feature == k) for k in range(n + m)]
+    for _ in range(lc.iterations):
+        rows: list[int] = []
+        for k in rng.permutation(n + m):
+            rows.extend(rows_of[k].tolist())
+            if len(rows) >= 3:
+                break
+        C, _, _, sv = np.linalg.lstsq(A[rows], y[rows], rcond=None)
+        if len(sv) < 3 or sv[-1] < 1e-6 * sv[0]:
+            continue  # parallel planes: the sample leaves the centre free
+        s = score(*errors(make_T(R, -R @ C)), lc.hypothesis_px)
+        if s > best:
+            best, best_C = s, C
+    T = make_T(R, -R @ best_C)
+    e_pt, e_ln = errors(T)
+    in_pt, in_ln = e_pt < lc.hypothesis_px, e_ln < lc.hypothesis_px
+    rc_lines = dataclasses.replace(rc, enabled=True, lines=True, directions=True, line_gate_px=0.0)
+    T, stats = refine_pose(
+        T,
+        points_w[in_pt],
+        pixels[in_pt],
+        K,
+        lines_w=L_w[in_ln],
+        line_xy=line_xy[in_ln],
+        dirs_w=d_w,
+        dirs_c=d_c,
+        config=rc_lines,
+    )
+    e_pt, e_ln = errors(T)
+    in_pt, in_ln = e_pt < cfg.ransac_threshold_px, e_ln < lc.line_threshold_px
+    n_pt, n_ln = int(in_pt.sum()), int(in_ln.sum())
+    d_w, d_c, _ = match_directions(T[:3, :3], d_w, d_c, rc.match_direction_deg)
+    constraints = 2 * (n_pt + n_ln + len(d_w))
+    what = f"lines: {n_ln}/{m} lines, {n_pt}/{n} points, {len(d_w)} directions"
+    if n_ln < lc.min_lines or constraints < lc.min_constraints:
+        return PnPResult(False, T, in_pt, reason=f"{what} (too few)", refine=stats)
+    rot_std, centre_std = pose_std(
+        T,
+        points_w[in_pt],
+        pixels[in_pt],
+        K,
+        lines_w=L_w[in_ln],
+        line_xy=line_xy[in_ln],
+        dirs_w=d_w,
+        dirs_c=d_c,
+        config=rc_lines,
+    )
+    depth = np.median(np.concatenate([points_w[in_pt] @ T[2, :3] + T[2, 3], _line_depths(T, L_w[in_ln])]))
+    if rot_std > lc.max_rotation_std_deg or centre_std > lc.max_centre_std * depth:
+        reason = f"{what}: not fixed ({rot_std:.2f} deg, centre {centre_std / depth:.3f} of depth)"
+        return PnPResult(False, T, in_pt, reason=reason, refine=stats)
+    rms = float(np.sqrt(np.mean(np.concatenate([e_pt[in_pt], e_ln[in_ln]]) ** 2)))
+    return PnPResult(True, T, in_pt, rms, f"{what}, rms {rms:.2f} px", stats)
+
+
+def _line_depths(T_cw: np.ndarray, L_w: np.ndarray) -> np.ndarray:
+    """Distance (M,) from the camera centre to each world line (the depth of its nearest point)."""
+    L_c = plucker_to_camera(L_w, invert(T_cw))
+    n_c, v_c = L_c[:, :3], L_c[:, 3:]
+    P = np.cross(v_c, n_c) / np.sum(v_c * v_c, 1, keepdims=True)
+    return np.linalg.norm(P, axis=1)
