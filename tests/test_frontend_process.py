@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import threading
 
 import cv2
 import numpy as np
@@ -218,3 +219,17 @@ def test_threaded_stages_give_the_same_tracks(video, result):
             a, b = getattr(threaded, f.name), getattr(other, f.name)
             if isinstance(a, np.ndarray):
                 np.testing.assert_array_equal(a, b, err_msg=f.name)
+
+
+def test_an_interrupt_stops_the_decoder_thread_before_it_propagates(video):
+    """Ctrl-C in the middle of the frontend: the decoding thread has ended when the interrupt leaves
+    `process` (a daemon thread still inside the decoder at interpreter exit aborts the process)."""
+    path, cam, _, _ = video
+
+    def interrupt(done: int, total: int, message: str) -> None:
+        if done == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):  # the traceback keeps process()'s frame (and its iterator) alive
+        process(open_recording(path), cam, FrontendConfig(), interrupt)
+    assert not [t for t in threading.enumerate() if t.name.startswith("decode-")]

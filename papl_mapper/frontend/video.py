@@ -185,8 +185,10 @@ class Recording:
                     raise item
                 yield item
         finally:
+            # wait for the thread to leave the decoder (it stops at its next frame): a daemon thread still
+            # inside OpenCV when the interpreter exits is unwound through C++ and aborts the process
             stop.set()
-            thread.join(timeout=5.0)
+            thread.join()
 
     def frames(self) -> Iterator[Frame]:
         """Decode in the calling thread (no prefetch); same frames as iterating the Recording."""
