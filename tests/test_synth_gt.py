@@ -16,7 +16,7 @@ from papl_mapper.map import Camera
 from papl_mapper.synth import SynthConfig, make_scene, tracks_from_scene, walkthrough
 from papl_mapper.synth.path import U_TURN_OFFSET_M
 from papl_mapper.synth.project import occluded, project, visible_segments
-from papl_mapper.synth.render import Renderer
+from papl_mapper.synth.render import Renderer, gaussian_noise, make_texture
 
 SCENE_NAMES = ("corridor", "atlanta", "garage")
 EDGE_OFFSET_PX = 4.0  # "a few pixels away" from the projected segment
@@ -358,3 +358,55 @@ def test_multisampled_edges_sit_on_the_gt(name):
     assert np.linalg.norm(global_shift(off, nrm)) < MAX_SHIFT_PX
     assert np.median(np.abs(off)) < MAX_MEDIAN_OFFSET_PX
     assert ok / n >= MIN_EDGE_FRACTION
+
+
+NOISE_STD_TOL = 0.05  # relative, unit-std Gaussian noise fields
+NOISE_CORR_TOL = 0.05  # autocorrelation at a lag of sigma against exp(-1/4)
+MAX_REPEAT_NCC = 0.8  # best correlation of a 0.5 m texture patch elsewhere on its canvas (a repeat: 1)
+SPLIT_QUAD_MAX_DIFF = 1.0  # grey levels: a wall drawn as one quad or as two sharing its texture frame
+
+
+@pytest.mark.parametrize("sigma", [1.5, 4.0, 24.0])  # drawn at full resolution, on a 2x and an 8x grid
+def test_gaussian_noise_has_unit_std_and_the_asked_correlation(sigma):
+    """Known answer: white noise through a Gaussian of std sigma correlates as exp(-d^2 / (4 sigma^2))."""
+    field = gaussian_noise(np.random.default_rng(0), (1200, 1500), sigma)
+    assert field.shape == (1200, 1500) and field.dtype == np.float32
+    assert abs(field.std() - 1) < NOISE_STD_TOL, field.std()
+    lag = round(sigma)
+    corr = np.mean(field[:, lag:] * field[:, :-lag]) / field.var()
+    assert abs(corr - math.exp(-(lag**2) / (4 * sigma**2))) < NOISE_CORR_TOL, corr
+
+
+def test_textures_do_not_repeat_over_a_long_wall():
+    """A 16 m wall's canvas: no patch of it shows up again elsewhere (the old 2 m periodic texture did)."""
+    mat = make_scene("corridor", 0).materials[0]
+    canvas = make_texture(mat, (512, 4096), 256.0, seed=0)
+    assert np.array_equal(canvas, make_texture(mat, (512, 4096), 256.0, seed=0)), "deterministic"
+    for x0 in (300, 1700, 3500):
+        patch = canvas[200:328, x0 : x0 + 128]
+        ncc = cv2.matchTemplate(canvas, patch, cv2.TM_CCOEFF_NORMED)
+        ncc[200 - 128 : 200 + 128, x0 - 128 : x0 + 128] = -1  # its own place
+        assert ncc.max() < MAX_REPEAT_NCC, (x0, ncc.max())
+
+
+def test_quads_sharing_a_texture_frame_render_without_a_seam():
+    """A wall drawn as one quad or as two abutting quads on one texture frame gives the same image: split on
+    a tile boundary, 2 m from the wall's end, facing the camera, so that both draw the same tiles at the
+    same mip levels."""
+    from papl_mapper.synth.scenes import SceneBuilder
+
+    def wall(cuts):
+        b = SceneBuilder("wall", [[0, 0, 1], [1, 0, 0], [0, 1, 0]], ["vertical", "x", "y"], 0)
+        mat = b.material("wall", (0.7, 0.7, 0.7), 0.3, 0.1)
+        for a0, a1 in zip(cuts[:-1], cuts[1:], strict=True):
+            b.quad([a0, 2, 0], [a1 - a0, 0, 0], [0, 0, 2.5], mat, tex_origin=[-3, 2, 0])
+        return b.build([[0, 0], [1, 0], [1, 1]], [np.array([[-3, -1], [3, -1], [3, 1.9], [-3, 1.9]])])
+
+    cam = Camera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    T_wc = np.eye(4)
+    T_wc[:3, :3] = Rotation.from_euler("x", -90, degrees=True).as_matrix()  # looking along +y
+    T_wc[:3, 3] = [1.0, 0.5, 1.2]
+    one = Renderer(wall([-3.0, 3.0]), cam, 2).render(T_wc)[0] * 170
+    two = Renderer(wall([-3.0, 1.0, 3.0]), cam, 2).render(T_wc)[0] * 170
+    assert one.std() > 5, "textured"
+    assert np.abs(one - two).max() < SPLIT_QUAD_MAX_DIFF, np.abs(one - two).max()

@@ -1,11 +1,14 @@
 """Exact perspective rendering of a scene's textured quads with a per-pixel depth buffer.
 
 Each visible quad is clipped to the near plane and projected; its pixels come from one inverse
-homography lookup (cv2.warpPerspective) into a mip level of its periodic procedural texture, and its
-depth from the plane equation (inverse depth is affine in the pixel coordinates). Rendering at
-`supersample` times the resolution and area-averaging down anti-aliases edges; mip levels chosen
-per tile by its texel-to-pixel ratio keep textures from shimmering. With `msaa`, textures are looked
-up once per output pixel and only coverage and depth per sample.
+homography lookup (cv2.warpPerspective) into a mip level of its texture canvas, and its depth from
+the plane equation (inverse depth is affine in the pixel coordinates). A canvas is the procedural
+texture of one texture frame (the quads of one material sharing a plane and texture origin), drawn
+from its own noise over the frame's whole extent, so no texture repeats anywhere in a scene (a
+periodic texture made views metres apart look alike). Rendering at `supersample` times the
+resolution and area-averaging down anti-aliases edges; mip levels chosen per tile by its
+texel-to-pixel ratio keep textures from shimmering. With `msaa`, textures are looked up once per
+output pixel and only coverage and depth per sample.
 """
 
 from __future__ import annotations
@@ -16,45 +19,95 @@ import cv2
 import numpy as np
 
 from papl_mapper.map import Camera
-from papl_mapper.synth.scenes import TEXTURE_PERIOD, Material, Scene
+from papl_mapper.synth.scenes import TILE_TEXELS, Material, Scene
 
 NEAR = 0.05  # near clipping plane in metres
 _ONE = np.full((1, 1), 255, np.uint8)  # source of the exact coverage lookup (read-only)
 _ONE.setflags(write=False)
 LIGHT_DIR = np.array([0.5, 0.3, 0.81]) / np.linalg.norm([0.5, 0.3, 0.81])
+LUM_SCALE = 150.0  # a canvas texel is the luminance factor times this (factors up to 1.7 fit a byte)
+N_LEVELS = 8  # mip levels per canvas; canvas sides are multiples of 2 ** (N_LEVELS - 1) texels
+CANVAS_MARGIN_TEXELS = 16  # canvas beyond its quads: lookups at quad edges stay inside it
+MAX_NOISE_STEP = 16  # coarsest grid (texels) wide noise bands are drawn on before upsampling
 
 
-def make_texture(mat: Material, texels_per_m: float, period: int = TEXTURE_PERIOD) -> np.ndarray:
-    """(period, period, 3) float32 BGR periodic texture: soft-thresholded blobs plus fine detail."""
-    rng = np.random.default_rng(mat.seed)
-    f2 = np.fft.fftfreq(period)[:, None] ** 2 + np.fft.rfftfreq(period)[None, :] ** 2
+def gaussian_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float) -> np.ndarray:
+    """(rows, cols) float32 white noise filtered by a Gaussian of `sigma_px` texels, unit standard
+    deviation, not periodic. Wide bands are drawn on a coarser grid (at least 1.5 cells per sigma)
+    and upsampled (bicubic): their cost does not grow with their width."""
+    step = 1
+    while step < MAX_NOISE_STEP and sigma_px / (2 * step) >= 1.5:
+        step *= 2
+    s = sigma_px / step
+    r = int(math.ceil(4 * s))
+    k = cv2.getGaussianKernel(2 * r + 1, s, cv2.CV_32F)
+    rows, cols = -(-shape[0] // step) + 1, -(-shape[1] // step) + 1
+    field = rng.standard_normal((rows + 2 * r, cols + 2 * r), dtype=np.float32)  # padded: no border effects
+    cv2.sepFilter2D(field, -1, k, k, dst=field, borderType=cv2.BORDER_REFLECT)  # in place: half the memory
+    field = field[r : r + rows, r : r + cols]
+    field *= np.float32(1.0 / float((k**2).sum()))  # std of white noise through the separable kernel
+    if step > 1:
+        field = cv2.resize(field, (cols * step, rows * step), interpolation=cv2.INTER_CUBIC)
+    return field[: shape[0], : shape[1]]
 
-    def band(sigma_px: float) -> np.ndarray:
-        """Periodic Gaussian-filtered white noise, unit standard deviation."""
-        noise = np.fft.rfft2(rng.standard_normal((period, period), dtype=np.float32))
-        out = np.fft.irfft2(noise * np.exp(-2 * math.pi**2 * sigma_px**2 * f2), s=(period, period))
-        return (out / (out.std() + 1e-12)).astype(np.float32)
 
+def make_texture(mat: Material, shape: tuple[int, int], texels_per_m: float, seed: int) -> np.ndarray:
+    """(rows, cols) uint8 luminance canvas (LUM_SCALE = albedo x 1): soft-thresholded blobs plus fine
+    detail and dark specks, drawn from noise seeded by the material and `seed` (the canvas)."""
+    if mat.contrast == 0:
+        return np.full(shape, round(LUM_SCALE), np.uint8)
+    rng = np.random.default_rng([mat.seed, seed])
     blob_px = max(mat.blob_scale_m * texels_per_m, 1.0)
-    blobs = np.tanh(4.0 * band(blob_px / 2))
-    detail = band(max(blob_px / 8, 0.7))
-    specks = np.clip(band(1.5) - 2.3, 0, 0.5) * 2  # small sharp spots: corners at close range
-    tint = band(blob_px)[..., None] * rng.normal(0, 1, 3).astype(np.float32)  # slow colour drift
-    base = np.asarray(mat.color_bgr, np.float32)
-    lum = 1 + mat.contrast * (0.7 * blobs + 0.25 * detail - 1.5 * specks)
-    tex = base * lum[..., None] * (1 + 0.08 * mat.contrast * tint)
-    return np.clip(tex, 0, 1.5).astype(np.float32)
+    lum = gaussian_noise(rng, shape, blob_px / 2)
+    lum *= 4.0
+    np.tanh(lum, out=lum)
+    lum *= 0.7
+    detail = gaussian_noise(rng, shape, max(blob_px / 8, 0.7))
+    detail *= 0.25
+    lum += detail
+    del detail
+    specks = gaussian_noise(rng, shape, 1.5)  # small sharp spots: corners at close range
+    specks -= 2.3
+    np.clip(specks, 0, 0.5, out=specks)
+    specks *= 3.0
+    lum -= specks
+    del specks
+    lum *= np.float32(mat.contrast * LUM_SCALE)
+    lum += np.float32(LUM_SCALE)
+    np.clip(lum, 0, 255, out=lum)
+    return np.rint(lum, out=lum).astype(np.uint8)
 
 
 def texture_pyramid(tex: np.ndarray) -> list[np.ndarray]:
-    """uint8 mip levels of a periodic texture, each tiled 2 x 2 so tile lookups never wrap."""
-    levels = []
-    level = np.clip(tex * 255 / 1.5, 0, 255)  # headroom: emissive lights go above white
-    while True:
-        levels.append(np.tile(level.round().astype(np.uint8), (2, 2, 1)))
-        if level.shape[0] <= 4:
-            return levels
-        level = cv2.resize(level, (level.shape[1] // 2, level.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    """N_LEVELS uint8 mip levels of a canvas (sides a multiple of 2 ** (N_LEVELS - 1))."""
+    levels = [tex]
+    for _ in range(N_LEVELS - 1):
+        h, w = levels[-1].shape
+        levels.append(cv2.resize(levels[-1], (w // 2, h // 2), interpolation=cv2.INTER_AREA))
+    return levels
+
+
+def texture_canvases(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Group quads by texture frame (material, origin, u, v): per quad its canvas (Q,); per canvas the
+    texture-frame metres (a, b) of texel (0, 0) (C, 2), its (rows, cols) (C, 2) and material (C,)."""
+    ab = _tex_ab(scene.quad_corners, scene, np.arange(len(scene.quad_corners)))  # (Q, 4, 2)
+    frames = np.concatenate(
+        [scene.quad_material[:, None], scene.tex_origin, scene.tex_u, scene.tex_v], axis=1
+    ).round(6)
+    _, first, canvas_of_quad = np.unique(frames, axis=0, return_index=True, return_inverse=True)
+    canvas_of_quad = canvas_of_quad.ravel()
+    order = np.argsort(first, kind="stable")  # canvases numbered in the order quads were built
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    canvas_of_quad = rank[canvas_of_quad]
+    ppm, align = scene.texels_per_m, 2 ** (N_LEVELS - 1)
+    origin, shape = np.zeros((len(order), 2)), np.zeros((len(order), 2), np.int64)
+    for c in range(len(order)):
+        pts = ab[canvas_of_quad == c].reshape(-1, 2)
+        lo = pts.min(0) - CANVAS_MARGIN_TEXELS / ppm
+        n = np.ceil(((pts.max(0) - lo) * ppm + CANVAS_MARGIN_TEXELS) / align).astype(np.int64) * align
+        origin[c], shape[c] = lo, n[::-1]
+    return canvas_of_quad, origin, shape, scene.quad_material[first[order]]
 
 
 class Renderer:
@@ -93,10 +146,17 @@ class Renderer:
         self.K_tex = np.array([[r, 0, (r - 1) / 2], [0, r, (r - 1) / 2], [0, 0, 1]])  # tex pixel -> sample px
         self.K_tex_proj = np.linalg.inv(self.K_tex) @ self.K  # camera -> texture-rate pixels
         self.ppm = scene.texels_per_m
+        self.canvas_of_quad, canvas_origin, canvas_shape, canvas_material = texture_canvases(scene)
         if textures is None:
-            textures = [texture_pyramid(make_texture(m, self.ppm)) for m in scene.materials]
+            textures = [
+                texture_pyramid(make_texture(scene.materials[m], (int(r), int(c)), self.ppm, seed=k))
+                for k, (m, (r, c)) in enumerate(zip(canvas_material, canvas_shape, strict=True))
+            ]
         self.pyramids = textures
+        self.canvas_origin = canvas_origin[self.canvas_of_quad]  # (Q, 2) metres of each quad's texel (0, 0)
         self.emissive = np.array([m.emissive for m in scene.materials])
+        albedo = np.array([m.color_bgr for m in scene.materials])[scene.quad_material]  # (Q, 3)
+        self.texel_bgr = albedo * (255 / 1.5 / LUM_SCALE)  # canvas byte -> image byte, before shading
         qc = scene.quad_corners
         self.normals = scene.normals
         self.quad_size = np.stack(
@@ -104,9 +164,6 @@ class Renderer:
         )
         self.tex_ab = _tex_ab(qc, scene, np.arange(len(qc)))  # (Q, 4, 2) metres in the texture frame
         self.tile_corners, self.tile_parent, self.tile_range = _tiles(scene, self.ppm)
-        self.tile_ab_min = _tex_ab(self.tile_corners, scene, self.tile_parent).min(1)  # (T, 2) metres
-        n_levels = np.array([len(self.pyramids[m]) for m in scene.quad_material])
-        self.tile_max_level = n_levels[self.tile_parent] - 1
         # coverage: (a, b) metres -> quad coordinates that round to 0 exactly inside the quad
         a0, b0 = self.tex_ab[:, 0, 0], self.tex_ab[:, 0, 1]
         lu, lv = self.quad_size[:, 0], self.quad_size[:, 1]
@@ -211,9 +268,8 @@ class Renderer:
             invz = invz[by : by + bh, bx : bx + bw]
             zb = zb[by : by + bh, bx : bx + bw]
             x0, y0, w, h = x0 + bx, y0 + by, bw, bh
-            warped = self._texture_at_samples(q, tile_cam, tex_maps, levels, x0, y0, w, h)
-            if shade[q] != 1.0:
-                warped = cv2.convertScaleAbs(warped, alpha=float(shade[q]))
+            bgr = self.texel_bgr[q, :, None] * shade[q]  # (3, 1): luminance byte -> BGR bytes
+            warped = self._texture_at_samples(q, tile_cam, tex_maps, levels, x0, y0, w, h, bgr)
             cv2.copyTo(warped, m, img[y0 : y0 + h, x0 : x0 + w])  # writes through the views
             cv2.copyTo(invz, m, zb)
         return img, zbuf
@@ -229,14 +285,11 @@ class Renderer:
         centre = tile_cam.mean(1)
         cos = np.abs((n_c[q] * centre).sum(1)) / np.linalg.norm(centre, axis=1)
         rho = self.ppm * z_ref / (self.K_tex_proj[0, 0] * np.maximum(cos, 0.2))  # texels per lookup pixel
-        level = np.clip(np.floor(np.log2(np.maximum(rho, 1e-6)) + 0.5), 0, self.tile_max_level).astype(
-            np.int64
-        )
+        level = np.clip(np.floor(np.log2(np.maximum(rho, 1e-6)) + 0.5), 0, N_LEVELS - 1).astype(np.int64)
         p2 = 2.0**level
         scale = self.ppm / p2
         half = (p2 - 1) / (2 * p2)
-        period = TEXTURE_PERIOD / p2
-        off = np.floor(self.tile_ab_min * (scale / period)[:, None]) * period[:, None]  # stay in the 2x2 copy
+        off = self.canvas_origin[q] * scale[:, None]  # texel (0, 0) of the canvas
         A = np.zeros((len(q), 3, 3))
         A[:, 0, 0] = A[:, 1, 1] = scale
         A[:, 0, 2] = -half - off[:, 0]
@@ -244,29 +297,29 @@ class Renderer:
         A[:, 2, 2] = 1
         return A @ H_inv[q] @ self.K_tex, level  # from texture-rate pixels
 
-    def _texture_at_samples(self, q, tile_cam, tex_maps, levels, x0, y0, w, h) -> np.ndarray:
+    def _texture_at_samples(self, q, tile_cam, tex_maps, levels, x0, y0, w, h, bgr) -> np.ndarray:
         """(h, w, 3) texture of quad q over the sample rect at (x0, y0): looked up at the texture
-        rate and repeated to every sample of its pixel."""
+        rate, coloured by `bgr` (3, 1) and repeated to every sample of its pixel."""
         r = self.tex_rate
         if r == 1:
-            return self._texture(q, tile_cam, tex_maps, levels, x0, y0, w, h)
+            return cv2.transform(self._texture(q, tile_cam, tex_maps, levels, x0, y0, w, h), bgr)
         X0, Y0 = x0 // r, y0 // r
         X1, Y1 = -(-(x0 + w) // r), -(-(y0 + h) // r)
-        tex = self._texture(q, tile_cam, tex_maps, levels, X0, Y0, X1 - X0, Y1 - Y0)
+        tex = cv2.transform(self._texture(q, tile_cam, tex_maps, levels, X0, Y0, X1 - X0, Y1 - Y0), bgr)
         up = cv2.resize(tex, ((X1 - X0) * r, (Y1 - Y0) * r), interpolation=cv2.INTER_NEAREST)
         return up[y0 - Y0 * r : y0 - Y0 * r + h, x0 - X0 * r : x0 - X0 * r + w]
 
     def _texture(self, q, tile_cam, tex_maps, levels, x0, y0, w, h) -> np.ndarray:
-        """(h, w, 3) uint8 texture of quad q over the pixel rect at (x0, y0), assembled from its tiles.
+        """(h, w) uint8 luminance of quad q over the pixel rect at (x0, y0), assembled from its tiles.
 
         Tiles are drawn with masks grown by a pixel: the texture is continuous across them, and the
         quad's own mask (not the tiles') decides coverage, so tile seams never open gaps.
         """
         first, count = self.tile_range[q]
-        pyramid = self.pyramids[self.scene.quad_material[q]]
+        pyramid = self.pyramids[self.canvas_of_quad[q]]
         if count == 1:
             return _lookup(pyramid[levels[first]], _shifted(tex_maps[first], x0, y0), w, h)
-        out = np.zeros((h, w, 3), np.uint8)
+        out = np.zeros((h, w), np.uint8)
         for k in range(first, first + count):
             pc = _clip_near(tile_cam[k])
             if pc is None:
@@ -294,7 +347,7 @@ def _tex_ab(corners: np.ndarray, scene: Scene, quad: np.ndarray) -> np.ndarray:
     )
 
 
-def _lookup(tex, M, w, h, interpolation=cv2.INTER_LINEAR, border=cv2.BORDER_WRAP) -> np.ndarray:
+def _lookup(tex, M, w, h, interpolation=cv2.INTER_LINEAR, border=cv2.BORDER_REPLICATE) -> np.ndarray:
     """(h, w) image whose pixel p is tex at M @ p (M: rect pixels -> source pixels)."""
     return cv2.warpPerspective(tex, M, (w, h), flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=border)
 
@@ -316,13 +369,13 @@ def _polygon_mask(uv: np.ndarray, x0: int, y0: int, w: int, h: int) -> np.ndarra
 
 
 def _tiles(scene: Scene, texels_per_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cut quads into tiles spanning at most TEXTURE_PERIOD texels: corners (T, 4, 3), parent (T,),
-    and per quad its first tile and tile count (Q, 2)."""
+    """Cut quads into tiles spanning at most TILE_TEXELS texels (each gets its own mip level): corners
+    (T, 4, 3), parent (T,), and per quad its first tile and tile count (Q, 2)."""
     corners, parent, ranges = [], [], []
     for q, c in enumerate(scene.quad_corners):
         u, v = c[1] - c[0], c[3] - c[0]
-        nu = max(1, math.ceil(np.linalg.norm(u) * texels_per_m / TEXTURE_PERIOD - 1e-9))
-        nv = max(1, math.ceil(np.linalg.norm(v) * texels_per_m / TEXTURE_PERIOD - 1e-9))
+        nu = max(1, math.ceil(np.linalg.norm(u) * texels_per_m / TILE_TEXELS - 1e-9))
+        nv = max(1, math.ceil(np.linalg.norm(v) * texels_per_m / TILE_TEXELS - 1e-9))
         ranges.append((len(parent), nu * nv))
         for i in range(nu):
             for j in range(nv):

@@ -18,8 +18,8 @@ import numpy as np
 
 from papl_mapper.errors import InputError
 
-#: Texture tile period in texels; quads are cut into tiles no longer than this many texels.
-TEXTURE_PERIOD = 512
+#: Quads are rendered in tiles no longer than this many texels, each with its own mip level.
+TILE_TEXELS = 512
 #: Segments whose direction is within this angle of an axis are labelled with that axis.
 AXIS_LABEL_TOL_DEG = 0.5
 
@@ -57,7 +57,7 @@ class Scene:
     pitch_deg: float = -4.0  # mean camera pitch of the walker (positive looks up)
     background_bgr: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
-    texels_per_m: float = 256.0  # texture resolution (the renderer tiles quads by TEXTURE_PERIOD)
+    texels_per_m: float = 256.0  # texture resolution (the renderer tiles quads by TILE_TEXELS)
 
     @property
     def normals(self) -> np.ndarray:
