@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from papl_mapper.frontend.descriptors import describe_corners
+from papl_mapper.geometry.two_view import find_essential
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +164,7 @@ def verify_pair(
     if len(uv_a) < 8:
         return np.zeros(len(uv_a), bool), None
     cv2.setRNGSeed(seed)
-    E, mask = cv2.findEssentialMat(uv_a, uv_b, K, cv2.USAC_FAST, 0.999, threshold_px)
+    E, mask = find_essential(uv_a, uv_b, K, cv2.USAC_FAST, threshold_px)
     if E is None or mask is None or E.shape[0] < 3:
         return np.zeros(len(uv_a), bool), None
     return mask.ravel().astype(bool), E[:3]  # the first of several stacked solutions, the mask's

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from papl_mapper.geometry.se3 import kabsch_rotation
+from papl_mapper.geometry.two_view import find_essential
 
 
 def common_points(
@@ -45,7 +46,7 @@ def relative_rotation(
         return np.eye(3)
     R = _rotation_from_homography(uv_a, uv_b, K, threshold_px, min_inlier_ratio)
     if R is None:
-        E, mask = cv2.findEssentialMat(uv_a, uv_b, K, cv2.RANSAC, 0.999, threshold_px)
+        E, mask = find_essential(uv_a, uv_b, K, cv2.RANSAC, threshold_px)
         if (
             E is None
             or E.shape != (3, 3)

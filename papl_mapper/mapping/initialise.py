@@ -18,6 +18,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from papl_mapper.geometry.se3 import bearings, rotation_angle_deg, rotation_between_rays
+from papl_mapper.geometry.two_view import find_essential
 
 log = logging.getLogger(__name__)
 
@@ -187,7 +188,7 @@ def initialise_two_view(
         return InitResult(False, f"only {len(x1)} matches (need {cfg.min_inliers})")
     thr = cfg.ransac_threshold_px / focal_px
     cv2.setRNGSeed(seed)
-    E, mask_e = cv2.findEssentialMat(x1, x2, np.eye(3), cv2.RANSAC, 0.999, thr)
+    E, mask_e = find_essential(x1, x2, np.eye(3), cv2.RANSAC, thr)
     # A transfer error has 2 DoF, an epipolar distance 1: widen the gate by sqrt(5.99 / 3.84).
     H, mask_h = cv2.findHomography(x1, x2, cv2.RANSAC, thr * np.sqrt(5.99 / 3.84))
     n_e = int(mask_e.sum()) if mask_e is not None else 0

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from papl_mapper.geometry.two_view import find_essential
 from papl_mapper.mapping.tracking import PnPResult
 from papl_mapper.tracks import Tracks
 
@@ -65,7 +66,7 @@ def register_relative(
     if len(common) < cfg.min_matches:
         return PnPResult(False, reason=f"{len(common)} tracks shared with keyframe {g}")
     cv2.setRNGSeed(seed)
-    E, mask = cv2.findEssentialMat(uv_g[i_g], uv_f[i_f], K, cv2.USAC_FAST, 0.999, cfg.ransac_threshold_px)
+    E, mask = find_essential(uv_g[i_g], uv_f[i_f], K, cv2.USAC_FAST, cfg.ransac_threshold_px)
     if E is None or mask is None or E.shape != (3, 3) or mask.sum() < cfg.min_matches:
         return PnPResult(False, reason=f"no essential matrix with {cfg.min_matches} inliers against {g}")
     n, R, t, mask = cv2.recoverPose(E, uv_g[i_g], uv_f[i_f], K, mask=mask.copy())

@@ -1,0 +1,28 @@
+"""OpenCV's essential-matrix estimation with degenerate input reported as no model.
+
+Matches that fit no unique essential matrix (a camera standing still, a pure rotation, exact and
+noise-free) make OpenCV 5.1's five-point solver raise (`solvePoly`'s assertion on a vanishing leading
+coefficient) where earlier versions returned no model or a degenerate one. Every caller already treats
+"no model" as a refusal, so the error becomes that.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def find_essential(
+    pts_a: np.ndarray,
+    pts_b: np.ndarray,
+    K: np.ndarray,
+    method: int,
+    threshold_px: float,
+    confidence: float = 0.999,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(E, inlier mask) of matched pixels (N, 2) under camera K by `method` (cv2.RANSAC, cv2.USAC_FAST,
+    ...), or (None, None) where OpenCV finds none or refuses the input as degenerate."""
+    try:
+        return cv2.findEssentialMat(pts_a, pts_b, K, method, confidence, threshold_px)
+    except cv2.error:
+        return None, None
