@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from papl_mapper.geometry.lines import endpoint_errors, plucker_to_camera
+from papl_mapper.geometry.lines import endpoint_errors, line_point_dir, plucker_to_camera
 from papl_mapper.geometry.resection import centre_equations, rotation_from_directions
 from papl_mapper.geometry.se3 import invert, make_T
 from papl_mapper.mapping.pose_refine import (
@@ -289,7 +289,5 @@ def pose_from_lines(
 
 def _line_depths(T_cw: np.ndarray, L_w: np.ndarray) -> np.ndarray:
     """Distance (M,) from the camera centre to each world line (the depth of its nearest point)."""
-    L_c = plucker_to_camera(L_w, invert(T_cw))
-    n_c, v_c = L_c[:, :3], L_c[:, 3:]
-    P = np.cross(v_c, n_c) / np.sum(v_c * v_c, 1, keepdims=True)
+    P, _ = line_point_dir(plucker_to_camera(L_w, invert(T_cw)))
     return np.linalg.norm(P, axis=1)
