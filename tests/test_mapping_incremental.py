@@ -156,3 +156,51 @@ def test_segments_merge_on_matching_descriptors():
     x_b = b.T_cw[12][:3, :3] @ b.points_w[100] + b.T_cw[12][:3, 3]
     x_a = a.T_cw[12][:3, :3] @ a.points_w[0] + a.T_cw[12][:3, 3]
     assert np.allclose(x_a, s * x_b, atol=1e-6)
+
+
+def test_segments_join_each_other_and_the_group_posing_most_frames_is_the_map():
+    """After a blind stretch two segments share tracks with each other but none with the map before it:
+    they join by their Sim(3) and, together posing more frames than the first, become the map."""
+    from papl_mapper.geometry.se3 import so3_exp
+    from papl_mapper.mapping.incremental import IncrementalConfig, Registration, _merge_segments
+    from papl_mapper.mapping.revisit import TrackIndex
+
+    rng = np.random.default_rng(7)
+    X = rng.uniform(-3, 3, (40, 3)) + [0, 0, 8]
+    R, t, s = so3_exp(np.array([0.2, 0.1, -0.3])), np.array([0.5, 1.0, -1.0]), 1.6
+
+    def segment(frames: range, points: dict[int, np.ndarray]) -> Registration:
+        reg = Registration(frames=list(frames), T_cw={f: np.eye(4) for f in frames})
+        reg.points_w = points
+        return reg
+
+    first = segment(range(0, 50), {1000 + i: rng.normal(size=3) for i in range(30)})
+    second = segment(range(60, 90), {i: X[i] for i in range(40)})
+    third = segment(range(90, 120), {i: (X[i] - t) @ R / s for i in range(20, 40)})  # s R x + t -> second
+    third.points_w.update({500 + i: rng.normal(size=3) for i in range(5)})
+    tracks = Tracks(
+        CAM,
+        np.arange(120),
+        np.arange(120) / 10.0,
+        np.ones(120, bool),
+        np.zeros(1, np.int64),
+        np.zeros(1, np.int64),
+        np.zeros((1, 2)),
+        np.zeros(0, np.int64),
+        np.zeros(0, np.int64),
+        np.zeros((0, 4)),
+        np.zeros(0, np.int64),
+        np.full((120, 3, 3), np.nan),
+    )
+    T = np.eye(4)
+    T[:3, 3] = [0.2, -0.1, 0.4]
+    third.T_cw[100] = T
+    merged = _merge_segments([first, second, third], IncrementalConfig(), TrackIndex.build(tracks))
+    assert merged is second
+    assert sorted(merged.T_cw) == list(range(60, 120))
+    assert not set(range(50)) & set(merged.T_cw)
+    # frame 100 sees the same point in both frames, up to the scale s
+    x3 = third.T_cw[100][:3, :3] @ third.points_w[25] + third.T_cw[100][:3, 3]
+    x2 = merged.T_cw[100][:3, :3] @ merged.points_w[25] + merged.T_cw[100][:3, 3]
+    assert np.allclose(x2, s * x3, atol=1e-6)
+    assert np.allclose(merged.points_w[500], s * R @ third.points_w[500] + t)

@@ -370,56 +370,89 @@ def _matched_tracks(index: TrackIndex, a: set[int], b: set[int], ratio: float) -
     return [(int(tb[i]), int(ta[j])) for i, j in pairs.tolist()]
 
 
+def _posed(reg: Registration) -> int:
+    """Frames a segment gives a pose (keyframes and the frames registered between them)."""
+    return len(set(reg.T_cw) | set(reg.T_cw_frames))
+
+
 def _merge_segments(
     segments: list[Registration], cfg: IncrementalConfig, index: TrackIndex, seed: int = 0
 ) -> Registration:
-    """Chain the segments into the largest one that can take them: a Sim(3) on the points they share,
-    by track id or by matching keyframe ORB descriptors (a revisit of a mapped place)."""
-    base = max(segments, key=lambda r: len(r.frames))
-    for seg in segments:
-        if seg is base:
-            continue
-        shared = sorted(set(seg.points_w) & set(base.points_w))
-        pairs = [(t, t) for t in shared]
-        pairs += [
-            p
-            for p in _matched_tracks(index, set(base.points_w), set(seg.points_w), cfg.merge_match_ratio)
-            if p[0] != p[1]
-        ]
-        common = pairs
-        sim = None
-        if len(common) >= cfg.merge_min_points:
-            x = np.array([seg.points_w[tb] for tb, _ in common])
-            y = np.array([base.points_w[ta] for _, ta in common])
-            try:
-                sim = _robust_sim3(x, y, cfg, seed)
-            except PaplError as exc:
-                log.debug("segment merge: %s", exc)
-        if sim is None:
-            log.warning(
-                "tracking segment of frames %d-%d (%d keyframes) shares %d points with the map: left out",
-                min(seg.frames),
-                max(seg.frames),
-                len(seg.frames),
-                len(common),
-            )
-            continue
-        R, t, c = sim.R, sim.t, sim.scale
-        log.info(
-            "merged the segment of frames %d-%d on %d shared points",
+    """Join the segments pairwise until no two can be: a Sim(3) on the points they share, by track id
+    or by matching keyframe ORB descriptors (a revisit of a mapped place). Any two may join, not only a
+    segment and the largest: two segments after a blind stretch often share tracks with each other but
+    not with the map before it. The group posing the most frames is the map; the others are reported
+    and left out."""
+    groups = sorted(segments, key=_posed, reverse=True)
+    failed: set[tuple[int, int]] = set()  # (id of the larger group, id of the smaller) that did not join
+    joined = True
+    while joined and len(groups) > 1:
+        joined = False
+        for i in range(len(groups)):
+            for j in range(i + 1, len(groups)):
+                key = (id(groups[i]), id(groups[j]))
+                if key in failed:
+                    continue
+                if _merge_into(groups[i], groups[j], cfg, index, seed):
+                    grown = groups[i]
+                    del groups[j]
+                    failed = {k for k in failed if id(grown) not in k}  # it may join others now
+                    groups.sort(key=_posed, reverse=True)
+                    joined = True
+                    break
+                failed.add(key)
+            if joined:
+                break
+    for seg in groups[1:]:
+        log.warning(
+            "tracking segment of frames %d-%d (%d keyframes) could not be joined to the map: left out",
             min(seg.frames),
             max(seg.frames),
-            len(common),
+            len(seg.frames),
         )
-        for src, dst in ((seg.T_cw, base.T_cw), (seg.T_cw_frames, base.T_cw_frames)):
-            for f, T in src.items():
-                if f in base.T_cw or f in base.T_cw_frames:
-                    continue
-                dst[f] = similarity_T_cw(T, R, t, c)
-        base.frames = sorted(set(base.frames) | {f for f in seg.frames if f in base.T_cw})
-        for tid, X in seg.points_w.items():
-            base.points_w.setdefault(tid, c * R @ X + t)
-    return base
+    return groups[0]
+
+
+def _merge_into(
+    base: Registration, seg: Registration, cfg: IncrementalConfig, index: TrackIndex, seed: int
+) -> bool:
+    """Map `seg` into `base`'s frame by a robust Sim(3) on the points they share and add its poses and
+    points (base's own are kept where both have one); False when too few shared points agree."""
+    pairs = [(t, t) for t in sorted(set(seg.points_w) & set(base.points_w))]
+    pairs += [
+        p
+        for p in _matched_tracks(index, set(base.points_w), set(seg.points_w), cfg.merge_match_ratio)
+        if p[0] != p[1]
+    ]
+    if len(pairs) < cfg.merge_min_points:
+        return False
+    x = np.array([seg.points_w[tb] for tb, _ in pairs])
+    y = np.array([base.points_w[ta] for _, ta in pairs])
+    try:
+        sim = _robust_sim3(x, y, cfg, seed)
+    except PaplError as exc:
+        log.debug("segment merge: %s", exc)
+        return False
+    if sim is None:
+        return False
+    R, t, c = sim.R, sim.t, sim.scale
+    log.info(
+        "merged the segment of frames %d-%d into that of frames %d-%d on %d shared points",
+        min(seg.frames),
+        max(seg.frames),
+        min(base.frames),
+        max(base.frames),
+        len(pairs),
+    )
+    for src, dst in ((seg.T_cw, base.T_cw), (seg.T_cw_frames, base.T_cw_frames)):
+        for f, T in src.items():
+            if f in base.T_cw or f in base.T_cw_frames:
+                continue
+            dst[f] = similarity_T_cw(T, R, t, c)
+    base.frames = sorted(set(base.frames) | {f for f in seg.frames if f in base.T_cw})
+    for tid, X in seg.points_w.items():
+        base.points_w.setdefault(tid, c * R @ X + t)
+    return True
 
 
 def _robust_sim3(x: np.ndarray, y: np.ndarray, cfg: IncrementalConfig, seed: int = 0) -> Sim3 | None:
