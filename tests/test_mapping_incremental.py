@@ -204,3 +204,62 @@ def test_segments_join_each_other_and_the_group_posing_most_frames_is_the_map():
     x2 = merged.T_cw[100][:3, :3] @ merged.points_w[25] + merged.T_cw[100][:3, 3]
     assert np.allclose(x2, s * x3, atol=1e-6)
     assert np.allclose(merged.points_w[500], s * R @ third.points_w[500] + t)
+
+
+def _shared_frame_segments(seed: int, depth_noise: float):
+    """A segment (frames 0-39) and one tracked back into its last frames (34-79), the second in its own
+    world frame by a known Sim(3); the second segment's points carry multiplicative depth errors."""
+    from papl_mapper.geometry.se3 import so3_exp
+    from papl_mapper.mapping.incremental import Registration
+
+    tracks, T_cw, pts = make_tracks(80, seed=seed)
+    rng = np.random.default_rng(seed)
+    R, t, s = so3_exp(np.array([0.3, -0.2, 0.4])), np.array([2.0, -1.0, 0.5]), 0.6  # base = s R seg + t
+    base = Registration(frames=list(range(40)), T_cw={f: T_cw[f] for f in range(40)})
+    seg = Registration(frames=list(range(34, 80)))
+    for f in range(34, 80):  # a world point x of seg is s R x + t in base's
+        T = np.eye(4)
+        T[:3, :3] = T_cw[f][:3, :3] @ R
+        T[:3, 3] = (T_cw[f][:3, :3] @ t + T_cw[f][:3, 3]) / s
+        seg.T_cw[f] = T
+    seen = np.unique(tracks.points_in(36)[0])
+    base.points_w = {int(i): pts[i] for i in seen}
+    for i in seen:  # the segment's depths along its rays from frame 36 are off by up to depth_noise
+        c = -T_cw[36][:3, :3].T @ T_cw[36][:3, 3]
+        X = c + (pts[i] - c) * (1.0 + rng.uniform(-depth_noise, depth_noise))
+        seg.points_w[int(i)] = (X - t) @ R / s
+    return tracks, base, seg, (R, t, s)
+
+
+def test_segments_join_on_the_frames_both_posed_where_points_disagree():
+    """Points triangulated in a turn carry poor depths, so no Sim(3) of them agrees; the frames both
+    segments posed give the rotation and translation, the points' median depth ratio the scale."""
+    from papl_mapper.mapping.incremental import IncrementalConfig, _merge_segments, _sim3_from_shared_frames
+    from papl_mapper.mapping.revisit import TrackIndex
+
+    tracks, base, seg, (R, t, s) = _shared_frame_segments(3, 0.4)
+    cfg = IncrementalConfig()
+    sim = _sim3_from_shared_frames(base, seg, cfg)
+    assert sim is not None and sim.method == "shared frames"
+    assert np.allclose(sim.R, R, atol=1e-9)
+    assert abs(sim.scale / s - 1.0) < 0.05
+    assert np.linalg.norm(sim.t - t) < 0.05 * np.linalg.norm(t)
+    merged = _merge_segments([base, seg], cfg, TrackIndex.build(tracks))
+    assert merged is seg and sorted({**merged.T_cw}) == list(range(80))
+    # exact depths: exact Sim(3)
+    _, base, seg, (R, t, s) = _shared_frame_segments(3, 0.0)
+    sim = _sim3_from_shared_frames(base, seg, cfg)
+    assert np.allclose(sim.R, R, atol=1e-9) and np.isclose(sim.scale, s) and np.allclose(sim.t, t, atol=1e-9)
+
+
+def test_segments_are_not_joined_on_frames_whose_poses_disagree():
+    from papl_mapper.geometry.se3 import so3_exp
+    from papl_mapper.mapping.incremental import IncrementalConfig, _sim3_from_shared_frames
+
+    _, base, seg, _ = _shared_frame_segments(3, 0.0)
+    seg.T_cw[37][:3, :3] = so3_exp(np.array([0.0, np.radians(5.0), 0.0])) @ seg.T_cw[37][:3, :3]
+    assert _sim3_from_shared_frames(base, seg, IncrementalConfig()) is None
+    _, base, seg, _ = _shared_frame_segments(3, 0.0)
+    for f in range(34, 38):  # two shared frames (38, 39) are too few
+        del base.T_cw[f]
+    assert _sim3_from_shared_frames(base, seg, IncrementalConfig()) is None

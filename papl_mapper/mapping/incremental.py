@@ -68,11 +68,21 @@ class IncrementalConfig:
     """New keyframes between two calls of the refinement callback (the windowed BA; 0: never)."""
     max_lost_frames: int = 5
     """Frames in a row that fail to register before tracking counts as lost and a new segment starts."""
+    segment_overlap_frames: int = 30
+    """A new segment tracks backwards this far into the frames the previous one posed, triangulating
+    as it goes, so that the two share frames and points to be joined on (0: not past its start)."""
     merge_min_points: int = 12
     """Fewest shared points (agreeing under the Sim(3)) to merge a segment into the map."""
     merge_ransac_iterations: int = 2000
     """3-point samples tried when estimating a segment's Sim(3) to the map."""
     merge_match_ratio: float = 0.8
+    merge_min_frames: int = 3
+    """Fewest frames posed by both segments to join them on those frames where too few shared points
+    agree under one Sim(3) (points triangulated in a turn carry poor depths; the poses are good)."""
+    merge_min_frame_points: int = 5
+    """...and fewest points both triangulated, whose depths give the scale."""
+    merge_max_rotation_deg: float = 2.0
+    """...and most any shared frame's rotation between the segments may differ from their mean."""
     """Lowe ratio for matching keyframe ORB descriptors between tracking segments."""
     merge_tolerance: float = 0.05
     """Largest point disagreement after the Sim(3), as a fraction of the map's median point spread."""
@@ -345,8 +355,9 @@ def _extend(
             reg.T_cw_frames[f] = res.T_cw
         if progress:
             progress(f + 1, len(tracks), f"{len(reg.frames)} keyframes, {len(reg.points_w)} points")
-    # frames between the segment's start and its initialisation pair are tracked backwards
-    for g in range(f1 - 1, start - 1, -1):
+    # frames between the segment's start and its initialisation pair are tracked backwards, and on
+    # into the previous segment's last frames, where new points give the two something to share
+    for g in range(f1 - 1, max(0, start - cfg.segment_overlap_frames) - 1, -1):
         guess = reg.T_cw[min(reg.T_cw)]
         res, _ = _pnp(tracks, reg, g, guess, cfg, dirs, lines, seed)
         if res is None or not res.ok:
@@ -355,6 +366,8 @@ def _extend(
             break
         reg.T_cw[g] = res.T_cw
         reg.frames.append(g)
+        if g < start:
+            _triangulate_new(tracks, rows, reg, g, cfg)
     return max(f, f2)
 
 
@@ -424,25 +437,26 @@ def _merge_into(
         for p in _matched_tracks(index, set(base.points_w), set(seg.points_w), cfg.merge_match_ratio)
         if p[0] != p[1]
     ]
-    if len(pairs) < cfg.merge_min_points:
-        return False
-    x = np.array([seg.points_w[tb] for tb, _ in pairs])
-    y = np.array([base.points_w[ta] for _, ta in pairs])
-    try:
-        sim = _robust_sim3(x, y, cfg, seed)
-    except PaplError as exc:
-        log.debug("segment merge: %s", exc)
-        return False
+    sim = None
+    if len(pairs) >= cfg.merge_min_points:
+        x = np.array([seg.points_w[tb] for tb, _ in pairs])
+        y = np.array([base.points_w[ta] for _, ta in pairs])
+        try:
+            sim = _robust_sim3(x, y, cfg, seed)
+        except PaplError as exc:
+            log.debug("segment merge: %s", exc)
+    if sim is None:
+        sim = _sim3_from_shared_frames(base, seg, cfg)
     if sim is None:
         return False
     R, t, c = sim.R, sim.t, sim.scale
     log.info(
-        "merged the segment of frames %d-%d into that of frames %d-%d on %d shared points",
+        "merged the segment of frames %d-%d into that of frames %d-%d on %s",
         min(seg.frames),
         max(seg.frames),
         min(base.frames),
         max(base.frames),
-        len(pairs),
+        "the frames both posed" if sim.method == "shared frames" else f"{len(pairs)} shared points",
     )
     for src, dst in ((seg.T_cw, base.T_cw), (seg.T_cw_frames, base.T_cw_frames)):
         for f, T in src.items():
@@ -453,6 +467,39 @@ def _merge_into(
     for tid, X in seg.points_w.items():
         base.points_w.setdefault(tid, c * R @ X + t)
     return True
+
+
+def _sim3_from_shared_frames(base: Registration, seg: Registration, cfg: IncrementalConfig) -> Sim3 | None:
+    """Sim(3) from `seg`'s world to `base`'s from frames both posed (a segment tracked back into the
+    previous one): rotation and translation from the poses, scale from the depths of the points both
+    triangulated, as seen from those frames; None with too few frames or points, or poses that disagree."""
+    posed_base = {**base.T_cw_frames, **base.T_cw}
+    posed_seg = {**seg.T_cw_frames, **seg.T_cw}
+    frames = sorted(set(posed_base) & set(posed_seg))
+    shared = sorted(set(base.points_w) & set(seg.points_w))
+    if len(frames) < cfg.merge_min_frames or len(shared) < cfg.merge_min_frame_points:
+        return None
+    Rs = np.stack([posed_base[g][:3, :3].T @ posed_seg[g][:3, :3] for g in frames])
+    u, _, vt = np.linalg.svd(Rs.sum(axis=0))  # chordal mean of the per-frame rotations
+    R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    if max(rotation_angle_deg(R, Rg) for Rg in Rs) > cfg.merge_max_rotation_deg:
+        return None
+    Xb = np.stack([base.points_w[t] for t in shared])
+    Xs = np.stack([seg.points_w[t] for t in shared])
+    ratios = []
+    for g in frames:
+        zb = Xb @ posed_base[g][2, :3] + posed_base[g][2, 3]
+        zs = Xs @ posed_seg[g][2, :3] + posed_seg[g][2, 3]
+        ok = (zb > 0) & (zs > 0)
+        ratios.append(zb[ok] / zs[ok])
+    ratios = np.concatenate(ratios)
+    if len(ratios) < cfg.merge_min_frame_points:
+        return None
+    scale = float(np.median(ratios))
+    centres_b = np.stack([-posed_base[g][:3, :3].T @ posed_base[g][:3, 3] for g in frames])
+    centres_s = np.stack([-posed_seg[g][:3, :3].T @ posed_seg[g][:3, 3] for g in frames])
+    t = np.mean(centres_b - scale * centres_s @ R.T, axis=0)
+    return Sim3(R, t, scale, "shared frames")
 
 
 def _robust_sim3(x: np.ndarray, y: np.ndarray, cfg: IncrementalConfig, seed: int = 0) -> Sim3 | None:
