@@ -190,3 +190,30 @@ def test_missed_detections_coast_on_the_flow(walk):
     m = dict(zip(ids.tolist(), segment_match(segs, gts[5][0]).tolist(), strict=True))
     same = [gts[5][1][m[t]] == gid_before[gt_before[t]] for t in back if m[t] >= 0 and gt_before[t] >= 0]
     assert len(same) >= 10 and np.mean(same) >= MIN_MATCH_PRECISION
+
+
+@pytest.mark.parametrize("own_motion", [True, False])
+def test_segments_keep_their_tracks_where_the_point_flow_predicts_them_wrongly(own_motion):
+    """Past a textured stretch onto a blank wall, the few tracked points left lie far from the lines and
+    move otherwise (here: the other way); the lines move smoothly, so their own last motion finds them
+    again, each on its own track (parallel neighbours 30 px apart never swap). Without it they get new
+    ids every frame."""
+    lt = LineTracker(LineConfig(own_motion=own_motion))
+    base = np.array([[100.0 + 30 * k, 20.0, 104.0 + 30 * k, 400.0] for k in range(5)])  # near-vertical
+    pts = np.array([[90.0 + 30 * k, 200.0] for k in range(6)])  # textured: points beside the lines
+    wall = np.array([[600.0, 50.0], [620.0, 60.0], [610.0, 440.0]])  # blank wall: few points, far away
+    ids = []
+    for f in range(8):
+        segs = base + [9.0 * f, 0.4 * f, 9.0 * f, 0.4 * f]  # 9 px per frame to the right
+        if f == 0:
+            flow = (None, None)
+        elif f < 3:
+            flow = (pts + [9.0 * (f - 1), 0.4 * (f - 1)], pts + [9.0 * f, 0.4 * f])
+        else:
+            flow = (wall, wall - [6.0, 0.0])
+        ids.append(lt.step(segs, *flow))
+    assert all(np.array_equal(i, ids[0]) for i in ids[:3])  # the point flow carries them
+    if own_motion:
+        assert all(np.array_equal(i, ids[0]) for i in ids)
+    else:
+        assert not set(ids[-1].tolist()) & set(ids[0].tolist())

@@ -61,6 +61,10 @@ class LineConfig:
     """A segment track survives this many frames without a detection (carried by the point flow)."""
     flow_neighbours: int = 6
     """Tracked points used to predict a segment's motion."""
+    own_motion: bool = True
+    """Segment tracks the point-flow prediction finds no detection for are matched again where their
+    own last motion carries them: on blank walls the few tracked points lie far from the lines and
+    predict them wrongly, while the lines themselves move smoothly."""
     lbd_max_hamming: int = 70
     """Largest Hamming distance (of 256 bits) of an LBD match."""
     lbd_ratio: float = 0.85
@@ -366,6 +370,7 @@ class LineTracker:
         self._coast_ids = np.zeros(0, np.int64)
         self._coast_segs = np.zeros((0, 4))
         self._coast_miss = np.zeros(0, np.int64)
+        self._motion: dict[int, np.ndarray] = {}  # live id -> its image motion over the last frame
 
     def step(self, det: np.ndarray, flow_from: np.ndarray | None, flow_to: np.ndarray | None) -> np.ndarray:
         """Assign track ids to this frame's detections (S, 4); returns the ids (S,) int64.
@@ -382,6 +387,8 @@ class LineTracker:
             cand_miss = np.concatenate([np.zeros(len(self.ids), np.int64), self._coast_miss])
             pred = predict_segments(cand_segs, flow_from, flow_to, self.config.flow_neighbours)
             m = match_predicted(pred, det, self.config)
+            if self.config.own_motion and len(self._motion):
+                m = np.vstack([m, self._match_own_motion(cand_segs, cand_ids, det, m)])
             ids[m[:, 1]] = cand_ids[m[:, 0]]
             missed = np.ones(len(cand_ids), bool)
             missed[m[:, 0]] = False
@@ -399,8 +406,38 @@ class LineTracker:
         for i in ids[new].tolist():
             self.born[i] = self.frame
         self.next_id += int(new.sum())
+        self._motion = self._track_motion(ids, det)
         self.ids, self.segs = ids, det
         return ids.copy()
+
+    def _track_motion(self, ids: np.ndarray, det: np.ndarray) -> dict[int, np.ndarray]:
+        """Image motion (2,) since the previous frame of each segment track detected in both, the mean of
+        its endpoints' (the tracking gates are about the line's position, not its extent)."""
+        prev = dict(zip(self.ids.tolist(), self.segs, strict=True))
+        out = {}
+        for i, seg in zip(ids.tolist(), det, strict=True):
+            if i in prev:
+                d = seg - prev[i]
+                out[i] = 0.5 * (d[:2] + d[2:])
+        return out
+
+    def _match_own_motion(
+        self, cand_segs: np.ndarray, cand_ids: np.ndarray, det: np.ndarray, matched: np.ndarray
+    ) -> np.ndarray:
+        """Matches (M, 2) of the candidates the flow left unmatched, moved by their own last motion, to
+        the detections still free."""
+        free_c = np.ones(len(cand_ids), bool)
+        free_c[matched[:, 0]] = False
+        free_c &= np.array([i in self._motion for i in cand_ids.tolist()], bool)
+        free_d = np.ones(len(det), bool)
+        free_d[matched[:, 1]] = False
+        rows_c, rows_d = np.flatnonzero(free_c), np.flatnonzero(free_d)
+        if len(rows_c) == 0 or len(rows_d) == 0:
+            return np.zeros((0, 2), np.int64)
+        shift = np.array([self._motion[int(i)] for i in cand_ids[rows_c]])
+        pred = cand_segs[rows_c] + np.hstack([shift, shift])
+        m = match_predicted(pred, det[rows_d], self.config)
+        return np.column_stack([rows_c[m[:, 0]], rows_d[m[:, 1]]]).reshape(-1, 2)
 
     def _forget(self, lost: np.ndarray) -> None:
         for i in lost.tolist():
