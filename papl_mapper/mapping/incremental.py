@@ -76,6 +76,7 @@ class IncrementalConfig:
     merge_ransac_iterations: int = 2000
     """3-point samples tried when estimating a segment's Sim(3) to the map."""
     merge_match_ratio: float = 0.8
+    """Lowe ratio for matching keyframe ORB descriptors between tracking segments."""
     merge_min_frames: int = 3
     """Fewest frames posed by both segments to join them on those frames where too few shared points
     agree under one Sim(3) (points triangulated in a turn carry poor depths; the poses are good)."""
@@ -83,7 +84,6 @@ class IncrementalConfig:
     """...and fewest points both triangulated, whose depths give the scale."""
     merge_max_rotation_deg: float = 2.0
     """...and most any shared frame's rotation between the segments may differ from their mean."""
-    """Lowe ratio for matching keyframe ORB descriptors between tracking segments."""
     merge_tolerance: float = 0.05
     """Largest point disagreement after the Sim(3), as a fraction of the map's median point spread."""
     track_lines: RegistrationLinesConfig = field(default_factory=RegistrationLinesConfig)
@@ -392,7 +392,8 @@ def _merge_segments(
     segments: list[Registration], cfg: IncrementalConfig, index: TrackIndex, seed: int = 0
 ) -> Registration:
     """Join the segments pairwise until no two can be: a Sim(3) on the points they share, by track id
-    or by matching keyframe ORB descriptors (a revisit of a mapped place). Any two may join, not only a
+    or by matching keyframe ORB descriptors (a revisit of a mapped place), or else on the frames both
+    posed (`_sim3_from_shared_frames`). Any two may join, not only a
     segment and the largest: two segments after a blind stretch often share tracks with each other but
     not with the map before it. The group posing the most frames is the map; the others are reported
     and left out."""
@@ -429,8 +430,9 @@ def _merge_segments(
 def _merge_into(
     base: Registration, seg: Registration, cfg: IncrementalConfig, index: TrackIndex, seed: int
 ) -> bool:
-    """Map `seg` into `base`'s frame by a robust Sim(3) on the points they share and add its poses and
-    points (base's own are kept where both have one); False when too few shared points agree."""
+    """Map `seg` into `base`'s frame by a robust Sim(3) on the points they share, or else on the frames
+    both posed, and add its poses and points (base's own are kept where both have one); False when
+    neither gives one."""
     pairs = [(t, t) for t in sorted(set(seg.points_w) & set(base.points_w))]
     pairs += [
         p
