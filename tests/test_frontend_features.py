@@ -25,6 +25,19 @@ def test_weak_links_count_the_tracks_consecutive_keyframes_share():
     assert weak_links(frame, track, np.array([0, 2]), 2).tolist() == [True]
 
 
+def test_a_break_between_keyframes_makes_their_link_weak_whatever_they_share():
+    """KLT across a jump (dropped frames, a fast car) keeps enough tracks to pass the count, but few and
+    short ones: the features must be matched there too, as they were detected there."""
+    frame = np.repeat(np.arange(6), 3)
+    track = np.tile([1, 2, 3], 6)  # every frame shares all three tracks
+    keyframes = np.array([0, 2, 5])
+    assert weak_links(frame, track, keyframes, 2).tolist() == [False, False]
+    assert weak_links(frame, track, keyframes, 2, breaks=np.array([4])).tolist() == [False, True]
+    assert weak_links(frame, track, keyframes, 2, breaks=np.array([2])).tolist() == [True, False]
+    assert weak_links(frame, track, keyframes, 2, breaks=np.array([5, 1])).tolist() == [True, True]
+    assert weak_links(frame, track, keyframes, 2, breaks=np.array([0])).tolist() == [False, False]
+
+
 def test_only_pairs_across_a_weak_link_within_the_window_are_matched():
     cfg = FeatureConfig(window=2, exhaustive_below=0)
     weak = np.array([False, False, True, False, False])  # keyframes 0..5, the link 2-3 is weak

@@ -194,9 +194,15 @@ def candidate_pairs(keyframes: np.ndarray, weak: np.ndarray, cfg: FeatureConfig)
 
 
 def weak_links(
-    point_frame: np.ndarray, point_track: np.ndarray, keyframes: np.ndarray, min_shared: int
+    point_frame: np.ndarray,
+    point_track: np.ndarray,
+    keyframes: np.ndarray,
+    min_shared: int,
+    breaks: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(len(keyframes) - 1,) True where consecutive keyframes share fewer than `min_shared` tracks.
+    """(len(keyframes) - 1,) True where consecutive keyframes share fewer than `min_shared` tracks, or
+    where a break (a frame that kept too few of the previous frame's KLT tracks: `breaks`, frame rows)
+    lies between them: the tracks across a jump are few and short even when they pass the count.
 
     `point_frame` is in frame order (as the frontend writes it), so each frame's rows are one slice.
     """
@@ -208,6 +214,11 @@ def weak_links(
         if prev is not None:
             weak[i - 1] = len(np.intersect1d(prev, ids)) < min_shared
         prev = ids
+    if breaks is not None and len(breaks) and len(weak):
+        # the link before keyframe i+1 holds the breaks at frames keyframes[i] + 1 .. keyframes[i+1]
+        after = np.searchsorted(keyframes, np.asarray(breaks), side="left") - 1
+        after = after[(after >= 0) & (after < len(weak))]
+        weak[after] = True
     return weak
 
 
@@ -264,9 +275,11 @@ def feature_tracks(
     cfg: FeatureConfig,
     workers: int = 1,
     seed: int = 0,
+    breaks: np.ndarray | None = None,
 ) -> FeatureTracks:
-    """Match the keyframes' SIFT keypoints across weak KLT links and chain them into tracks; `workers`
-    threads match the keyframe pairs; `seed` seeds the verification's RANSAC."""
+    """Match the keyframes' SIFT keypoints across weak KLT links (`weak_links`; `breaks`: frame rows
+    of the breaks) and chain them into tracks; `workers` threads match the keyframe pairs; `seed` seeds
+    the verification's RANSAC."""
     empty = FeatureTracks(
         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
     )
@@ -284,7 +297,7 @@ def feature_tracks(
         node_sift, node_desc = node_sift[order], node_desc[order]
         starts = np.searchsorted(node_frame, keyframes)
     ends = np.append(starts[1:], len(node_frame))
-    weak = weak_links(point_frame, point_track, keyframes, cfg.weak_link_tracks)
+    weak = weak_links(point_frame, point_track, keyframes, cfg.weak_link_tracks, breaks)
     pairs = candidate_pairs(keyframes, weak, cfg)
 
     def link(pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, tuple[int, int, np.ndarray]] | None:

@@ -263,6 +263,7 @@ class _Run:
         self.timestamps: list[float] = []
         self.is_kf: list[bool] = []
         self.skipped: list[int] = []
+        self.break_rows: list[int] = []  # frame rows that kept too few of the previous frame's KLT tracks
         self.p_frame, self.p_track, self.p_uv = [], [], []
         self.l_frame, self.l_track, self.l_xy = [], [], []
         self.pd_row, self.pd_desc, self.ld_row, self.ld_desc = [], [], [], []
@@ -376,6 +377,7 @@ class _Run:
         broken = not restart and self._is_break(points.ids)
         if broken:
             self.stats.breaks += 1
+            self.break_rows.append(len(self.frame_index))
             self._keyframe_before_break()
         uv = self._to_full(points.uv)
         clock.lap("points")
@@ -457,6 +459,7 @@ class _Run:
             self.config.features,
             workers=2 if self.config.parallel else 1,
             seed=self.seed,
+            breaks=np.array(self.break_rows, np.int64),
         )
         self.stats.seconds["matching"] = time.perf_counter() - t0
         self.stats.feature_tracks = len(np.unique(ft.track))
