@@ -29,6 +29,7 @@ the peer's.
     .venv/bin/python benchmarks/real.py --only kitti06_0000_0050,icl_lr_kt1_250_366
     .venv/bin/python benchmarks/real.py --skip-colmap            # papl-map only, peers from the JSON
     .venv/bin/python benchmarks/real.py --ablation points-only,orthonormal-lines,no-axis-management
+    .venv/bin/python benchmarks/real.py --step 3                 # every 3rd image: real_step3.json
 
 Every sequence's images are read once before the first method runs, so that all methods find them in
 the page cache. Prints one table and writes benchmarks/results/real.json.
@@ -36,11 +37,14 @@ With --only, the entries of the other sequences already in the JSON are kept (ea
 commit it was measured at).
 With --skip-colmap the COLMAP/GLOMAP records of a sequence are taken from the existing JSON when
 its input fingerprint (images, timestamps, intrinsics, ground truth) is unchanged.
+With --step N every method maps every N-th image (papl-map with `--step N`, the peers the same image
+list): the wide baselines of dropped frames or a faster walk, on the same ground truth.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import os
@@ -91,6 +95,7 @@ class Sequence:
     gt: Trajectory
     width: int
     height: int
+    step: int = 1  # every step-th image of the folder (papl-map --step; the peers get the same images)
 
     @property
     def median_interval_s(self) -> float:
@@ -165,6 +170,14 @@ def discover(data: Path) -> list[Sequence]:
     return seqs
 
 
+def every_nth(seq: Sequence, step: int) -> Sequence:
+    """The sequence thinned to every step-th image, as `papl-map run --step` reads it (wider baselines,
+    as dropped frames or a faster walk give)."""
+    if step == 1:
+        return seq
+    return dataclasses.replace(seq, names=seq.names[::step], timestamps=seq.timestamps[::step], step=step)
+
+
 def accuracy(seq: Sequence, est: Trajectory) -> dict:
     """ATE after Sim(3) (Umeyama with scale) over the estimate's poses matched to the ground truth."""
     i_ref, i_est = associate_trajectories(seq.gt, est, MAX_TIME_DIFF_S)
@@ -218,6 +231,7 @@ def run_papl(seq: Sequence, out: Path, timeout_s: float, preset: str = "full") -
         shutil.rmtree(out)
     cmd = [str(PAPL), "run", str(seq.images), "--camera", str(seq.camera_file), "--out", str(out)]
     cmd += ["--preset", preset] if preset != "full" else []
+    cmd += ["--step", str(seq.step)] if seq.step > 1 else []
     rec: dict = {"command": " ".join(cmd), "loadavg_1m_at_start": _loadavg(), "frames_total": len(seq.names)}
     t0 = time.perf_counter()
     try:
@@ -529,6 +543,12 @@ def main() -> int:
     ap.add_argument("--verbose", action="store_true", help="keep COLMAP's log output")
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument(
+        "--step",
+        type=int,
+        default=1,
+        help="map every STEP-th image (all methods); results go to real_step<STEP>.json unless --out",
+    )
+    ap.add_argument(
         "--ablation",
         default="",
         help=f"papl-map presets also run on every sequence, comma-separated (e.g. {','.join(ABLATION)})",
@@ -537,7 +557,12 @@ def main() -> int:
     if not args.data.is_dir():
         print(f"{args.data}: no such folder; the real sequences live in ../shared/data/real")
         return 2
-    seqs = discover(args.data)
+    if args.step < 1:
+        print(f"--step {args.step}: must be 1 or more")
+        return 2
+    if args.step > 1 and args.out == OUT:
+        args.out = OUT.with_name(f"real_step{args.step}.json")
+    seqs = [every_nth(s, args.step) for s in discover(args.data)]
     if args.only:
         wanted = [s.strip() for s in args.only.split(",") if s.strip()]
         unknown = sorted(set(wanted) - {s.name for s in seqs})
@@ -565,6 +590,7 @@ def main() -> int:
             "folder": str(seq.folder),
             "camera_file": seq.camera_file.name,
             "frames_total": len(seq.names),
+            "step": seq.step,
             "image_size_px": [seq.width, seq.height],
             "median_frame_interval_s": seq.median_interval_s,
             "matching": seq.matching,

@@ -185,19 +185,22 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
                     ),
                 )
             ],
-            "real.json": [
-                Rows(
-                    "sequences",
-                    (
-                        "papl.ate_rmse_m",
-                        "papl.ate_rmse_pct_path",
-                        "papl.wall_s",
-                        "colmap.status",
-                        "glomap.ate_rmse_m",
-                        "glomap.wall_s",
-                    ),
-                )
-            ],
+            **{
+                name: [
+                    Rows(
+                        "sequences",
+                        (
+                            "papl.ate_rmse_m",
+                            "papl.ate_rmse_pct_path",
+                            "papl.wall_s",
+                            "colmap.status",
+                            "glomap.ate_rmse_m",
+                            "glomap.wall_s",
+                        ),
+                    )
+                ]
+                for name in ("real.json", "real_step2.json", "real_step3.json")
+            },
             "scale.json": [
                 Rows(
                     "synthetic",
