@@ -370,7 +370,7 @@ class LineTracker:
         self._coast_ids = np.zeros(0, np.int64)
         self._coast_segs = np.zeros((0, 4))
         self._coast_miss = np.zeros(0, np.int64)
-        self._motion: dict[int, np.ndarray] = {}  # live id -> its image motion over the last frame
+        self._motion = (np.zeros(0, np.int64), np.zeros((0, 2)))  # live ids, their last image motion
 
     def step(self, det: np.ndarray, flow_from: np.ndarray | None, flow_to: np.ndarray | None) -> np.ndarray:
         """Assign track ids to this frame's detections (S, 4); returns the ids (S,) int64.
@@ -387,7 +387,7 @@ class LineTracker:
             cand_miss = np.concatenate([np.zeros(len(self.ids), np.int64), self._coast_miss])
             pred = predict_segments(cand_segs, flow_from, flow_to, self.config.flow_neighbours)
             m = match_predicted(pred, det, self.config)
-            if self.config.own_motion and len(self._motion):
+            if self.config.own_motion and len(self._motion[0]):
                 m = np.vstack([m, self._match_own_motion(cand_segs, cand_ids, det, m)])
             ids[m[:, 1]] = cand_ids[m[:, 0]]
             missed = np.ones(len(cand_ids), bool)
@@ -410,31 +410,28 @@ class LineTracker:
         self.ids, self.segs = ids, det
         return ids.copy()
 
-    def _track_motion(self, ids: np.ndarray, det: np.ndarray) -> dict[int, np.ndarray]:
-        """Image motion (2,) since the previous frame of each segment track detected in both, the mean of
-        its endpoints' (the tracking gates are about the line's position, not its extent)."""
-        prev = dict(zip(self.ids.tolist(), self.segs, strict=True))
-        out = {}
-        for i, seg in zip(ids.tolist(), det, strict=True):
-            if i in prev:
-                d = seg - prev[i]
-                out[i] = 0.5 * (d[:2] + d[2:])
-        return out
+    def _track_motion(self, ids: np.ndarray, det: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sorted ids (N,) of the segment tracks detected in this frame and the previous one, and their image
+        motion (N, 2) between the two: the mean of the endpoints' (the tracking gates are about the line's
+        position, not its extent)."""
+        common, now, prev = np.intersect1d(ids, self.ids, assume_unique=True, return_indices=True)
+        d = det[now] - self.segs[prev]
+        return common, 0.5 * (d[:, :2] + d[:, 2:])
 
     def _match_own_motion(
         self, cand_segs: np.ndarray, cand_ids: np.ndarray, det: np.ndarray, matched: np.ndarray
     ) -> np.ndarray:
         """Matches (M, 2) of the candidates the flow left unmatched, moved by their own last motion, to
         the detections still free."""
-        free_c = np.ones(len(cand_ids), bool)
+        moved_ids, motion = self._motion
+        free_c = np.isin(cand_ids, moved_ids)
         free_c[matched[:, 0]] = False
-        free_c &= np.array([i in self._motion for i in cand_ids.tolist()], bool)
         free_d = np.ones(len(det), bool)
         free_d[matched[:, 1]] = False
         rows_c, rows_d = np.flatnonzero(free_c), np.flatnonzero(free_d)
         if len(rows_c) == 0 or len(rows_d) == 0:
             return np.zeros((0, 2), np.int64)
-        shift = np.array([self._motion[int(i)] for i in cand_ids[rows_c]])
+        shift = motion[np.searchsorted(moved_ids, cand_ids[rows_c])]
         pred = cand_segs[rows_c] + np.hstack([shift, shift])
         m = match_predicted(pred, det[rows_d], self.config)
         return np.column_stack([rows_c[m[:, 0]], rows_d[m[:, 1]]]).reshape(-1, 2)
