@@ -33,9 +33,9 @@ class InputConfig:
     """Intrinsics file: camera.json, OpenCV YAML/JSON, COLMAP cameras.txt, KITTI calib.txt (none: guessed
     from `hfov_deg`, with a warning)."""
     start_s: float | None = None
-    """Start time in seconds (none: the first frame)."""
+    """Start time in seconds from the first frame (none: the first frame)."""
     end_s: float | None = None
-    """End time in seconds (none: the last frame)."""
+    """End time in seconds from the first frame (none: the last frame)."""
     step: int = 1
     """Use every step-th frame."""
     max_size: int | None = None

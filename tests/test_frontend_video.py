@@ -89,6 +89,20 @@ def test_image_folder_natural_order_and_timestamps_file(tmp_path):
     assert rec.fps == pytest.approx(20.0)
 
 
+def test_time_range_counts_from_the_first_image_of_a_folder_with_clock_timestamps(tmp_path):
+    """TUM and KITTI folders carry clock times (1.3e9 s): --start/--end count from the first frame, as
+    for a video; the frames keep their clock timestamps (they are matched to the ground truth)."""
+    for i in range(12):
+        cv2.imwrite(str(tmp_path / f"frame{i}.png"), _frame(i))
+    stamps = 1305031102.0 + 0.05 * np.arange(12)
+    (tmp_path / "timestamps.txt").write_text("\n".join(f"{t:.6f}" for t in stamps))
+    rec = open_recording(tmp_path, start_s=0.1, end_s=0.3)
+    frames = list(rec)
+    assert [f.index for f in frames] == [2, 3, 4, 5, 6]
+    assert rec.expected_frames() == 5
+    np.testing.assert_allclose([f.timestamp_s for f in frames], stamps[2:7])
+
+
 def test_timestamps_by_file_name(tmp_path):
     p = tmp_path / "rgb.txt"
     p.write_text("0.2 b.png\n0.1 a.png\n")

@@ -62,8 +62,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="override a config key for every recording (a manifest's own set comes after)",
     )
     p.add_argument("--seed", type=int, help="seed for random choices (default 0)")
-    p.add_argument("--start", type=float, help="start time in seconds (unless a manifest gives one)")
-    p.add_argument("--end", type=float, help="end time in seconds (unless a manifest gives one)")
+    p.add_argument(
+        "--start", type=float, help="start time in seconds from the first frame (unless a manifest gives one)"
+    )
+    p.add_argument(
+        "--end", type=float, help="end time in seconds from the first frame (unless a manifest gives one)"
+    )
     p.add_argument(
         "--step", type=int, default=1, help="use every STEP-th frame (unless a manifest gives one)"
     )

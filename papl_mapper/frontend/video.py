@@ -36,6 +36,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pg
 _END = object()
 _MAX_BAD_RUN = 1000  # failed grabs in a row after which a video stream counts as ended (length unknown)
 _REFERENCE_IMAGES = 3  # decodable images of a folder whose most common size is the folder's size
+_TIME_TOL_S = (
+    1e-6  # time-range bounds are met within a microsecond (clock times of 1e9 s carry 2e-7 s of rounding)
+)
 
 
 @dataclass
@@ -120,6 +123,14 @@ class Recording:
     bad_frames: list[BadFrame] = field(default_factory=list)  # skipped frames of the current/last pass
 
     @property
+    def time_origin_s(self) -> float:
+        """The time start_s and end_s count from: the first image's timestamp in a folder with timestamps
+        (TUM and KITTI write clock times), 0 for a video and a folder without."""
+        if self.kind == "images" and self.image_timestamps is not None and len(self.image_timestamps):
+            return float(self.image_timestamps[0])
+        return 0.0
+
+    @property
     def scale_xy(self) -> tuple[float, float]:
         return self.width / self.source_width, self.height / self.source_height
 
@@ -140,11 +151,12 @@ class Recording:
             times = self.image_timestamps
         else:
             times = indices / self.fps
+        times = times - self.time_origin_s
         keep = np.ones(self.frame_count, bool)
         if self.start_s is not None:
-            keep &= times >= self.start_s - 1e-9
+            keep &= times >= self.start_s - _TIME_TOL_S
         if self.end_s is not None:
-            keep &= times <= self.end_s + 1e-9
+            keep &= times <= self.end_s + _TIME_TOL_S
         kept = indices[keep]
         if len(kept) == 0:
             return 0
@@ -208,10 +220,11 @@ class Recording:
         return image
 
     def _in_range(self, t: float) -> int:
-        """-1 before the time range, 0 inside, 1 after it."""
-        if self.start_s is not None and t < self.start_s - 1e-9:
+        """-1 before the time range, 0 inside, 1 after it (t on the recording's clock)."""
+        t = t - self.time_origin_s
+        if self.start_s is not None and t < self.start_s - _TIME_TOL_S:
             return -1
-        if self.end_s is not None and t > self.end_s + 1e-9:
+        if self.end_s is not None and t > self.end_s + _TIME_TOL_S:
             return 1
         return 0
 
