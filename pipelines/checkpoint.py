@@ -72,6 +72,7 @@ _REGISTRATION_FIELDS = {
     "point_angle",
     "T_cw_frames",
     "lost",
+    "segments_left_out",
     "revisits",
     "init_frames",
 }
@@ -310,6 +311,7 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
         revisit_n_pairs=np.array([len(p) for p in pairs], np.int64),
         revisit_pairs=np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64),
         point_track=tracks.point_track,
+        segments_left_out=np.asarray(reg.segments_left_out, np.int64).reshape(-1, 2),
     )
 
 
@@ -352,6 +354,7 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
         lost=a["lost"].tolist(),
         revisits=revisits,
         init_frames=(int(a["init_frames"][0]), int(a["init_frames"][1])),
+        segments_left_out=[(int(f), int(g)) for f, g in a.get("segments_left_out", np.zeros((0, 2)))],
     )
     if set(reg.frames) - set(reg.T_cw) or len(reg.frames) != len(reg.T_cw):
         raise ValueError("keyframes and keyframe poses disagree")

@@ -299,7 +299,7 @@ def _map_recording(
             checkpoints_written=store.written,
             per_frame=per_frame_counts(tracks),
         )
-        _warn_partial(summary.frames_lost, len(tracks), cam_src.guessed)
+        _warn_partial(summary.frames_lost, len(tracks), cam_src.guessed, stats.segments_left_out)
         timer.current = "writing outputs"
         write_outputs(out, m, traj, cfg, summary)
         store.prune()
@@ -420,6 +420,9 @@ def _points_ba(
         reg = cull_keyframes(tracks, reg, cfg.cull, cull_stats)
     stats = MappingStats(
         frames_unregistered=len(reg.lost),
+        segments_left_out=[
+            [int(tracks.frame_index[a]), int(tracks.frame_index[b])] for a, b in reg.segments_left_out
+        ],
         keyframes_registered=n_registered,
         culling=cull_stats.as_dict(),
         revisits=[revisit_row(rv) for rv in reg.revisits],
@@ -467,9 +470,10 @@ __all__ = [
 PARTIAL_WARN_FRACTION = 0.2
 
 
-def _warn_partial(lost: int, frames: int, guessed_camera: bool) -> None:
+def _warn_partial(lost: int, frames: int, guessed_camera: bool, left_out: list[list[int]] = ()) -> None:
     """A warning, not silence, when much of the recording has no pose: the map covers only part of it,
-    which a wrong camera file (intrinsics, distortion) causes as often as the recording itself."""
+    which a wrong camera file (intrinsics, distortion) causes as often as the recording itself. Tracking
+    segments mapped on their own but not joined (`left_out`, recording frame ranges) are named."""
     if frames == 0 or lost <= PARTIAL_WARN_FRACTION * frames:
         return
     cause = (
@@ -477,11 +481,19 @@ def _warn_partial(lost: int, frames: int, guessed_camera: bool) -> None:
         if guessed_camera
         else "the camera file (intrinsics, distortion)"
     )
+    apart = ""
+    if left_out:
+        ranges = ", ".join(f"{a}-{b}" for a, b in left_out)
+        apart = (
+            f"; frames {ranges} were mapped as separate tracking segments that share too little with "
+            "the map to join it (a blind stretch between them)"
+        )
     log.warning(
-        "%d of %d frames (%.0f%%) have no pose: the map covers only part of the recording; check %s, "
+        "%d of %d frames (%.0f%%) have no pose%s: the map covers only part of the recording; check %s, "
         "or the frames without a pose in summary.json's per_frame (too little texture or motion blur)",
         lost,
         frames,
         100.0 * lost / frames,
+        apart,
         cause,
     )

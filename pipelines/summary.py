@@ -38,6 +38,8 @@ class MappingStats:
     """Statistics of the stages after the frontend, in the order they run (None: the stage did not run)."""
 
     frames_unregistered: int = 0
+    segments_left_out: list[list[int]] = field(default_factory=list)
+    """[first, last] recording frame index of each tracking segment that could not be joined to the map."""
     keyframes_registered: int = 0
     culling: dict[str, Any] = field(default_factory=dict)
     revisits: list[dict[str, Any]] = field(default_factory=list)

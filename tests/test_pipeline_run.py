@@ -168,7 +168,9 @@ def test_a_partial_map_is_warned_about(caplog):
         assert not caplog.records
         _warn_partial(31, 75, guessed_camera=False)
         _warn_partial(40, 75, guessed_camera=True)
-    assert [r.levelno for r in caplog.records] == [logging.WARNING] * 2
+        _warn_partial(117, 300, guessed_camera=False, left_out=[[0, 101]])
+    assert [r.levelno for r in caplog.records] == [logging.WARNING] * 3
     assert "31 of 75 frames (41%) have no pose" in caplog.records[0].getMessage()
     assert "camera file" in caplog.records[0].getMessage()
     assert "--camera" in caplog.records[1].getMessage()
+    assert "frames 0-101 were mapped as separate tracking segments" in caplog.records[2].getMessage()

@@ -360,6 +360,7 @@ def _registration(rng: np.random.Generator) -> Registration:
             Revisit(1, pose(), np.zeros((0, 2), np.int64), 0),
         ],
         init_frames=(0, 3),
+        segments_left_out=[(5, 9)],
     )
     return reg
 
@@ -373,12 +374,14 @@ def test_registration_round_trip_keeps_order_revisits_and_renamed_tracks(tmp_pat
     back, point_track = ckpt.read_registration(tmp_path, {}, _small_tracks())
     assert np.array_equal(point_track, tracks.point_track)
     assert back.frames == reg.frames and back.lost == reg.lost and back.init_frames == reg.init_frames
+    assert back.segments_left_out == reg.segments_left_out
     for name in ("T_cw", "points_w", "T_cw_frames", "point_angle"):
         a, b = getattr(reg, name), getattr(back, name)
         assert list(a) == list(b), name  # insertion order too
         assert all(np.array_equal(a[k], b[k]) for k in a), name
     # every field of Registration is compared here: a new one must be added to this test
     compared = {"frames", "lost", "init_frames", "T_cw", "points_w", "T_cw_frames", "point_angle", "revisits"}
+    compared.add("segments_left_out")
     assert {f.name for f in dataclasses.fields(Registration)} == compared
     for a, b in zip(reg.revisits, back.revisits, strict=True):
         assert (a.frame, a.old_frame, a.scale) == (b.frame, b.old_frame, b.scale)

@@ -106,6 +106,9 @@ class Registration:
     """Frames that could not be registered (tracking loss)."""
     revisits: list[Revisit] = field(default_factory=list)
     """Loops closed during registration."""
+    segments_left_out: list[tuple[int, int]] = field(default_factory=list)
+    """First and last frame (rows) of each tracking segment that could not be joined to the map (its
+    frames are among `lost`)."""
     init_frames: tuple[int, int] = (-1, -1)
 
 
@@ -424,6 +427,8 @@ def _merge_segments(
             max(seg.frames),
             len(seg.frames),
         )
+    posed = [sorted(set(seg.T_cw) | set(seg.T_cw_frames)) for seg in groups[1:]]
+    groups[0].segments_left_out = sorted((f[0], f[-1]) for f in posed)
     return groups[0]
 
 
