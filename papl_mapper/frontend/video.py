@@ -36,9 +36,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pg
 _END = object()
 _MAX_BAD_RUN = 1000  # failed grabs in a row after which a video stream counts as ended (length unknown)
 _REFERENCE_IMAGES = 3  # decodable images of a folder whose most common size is the folder's size
-_TIME_TOL_S = (
-    1e-6  # time-range bounds are met within a microsecond (clock times of 1e9 s carry 2e-7 s of rounding)
-)
+_TIME_TOL_S = 1e-6  # time-range bounds are met within a microsecond (clock times carry 2e-7 s rounding)
 
 
 @dataclass

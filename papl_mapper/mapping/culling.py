@@ -181,7 +181,7 @@ def cull_keyframes(
     if not cfg.enabled or len(frames) < 3:
         return out
     obs = _point_observations(tracks, reg, frames)
-    registered = np.array(sorted(set(reg.T_cw) | set(reg.T_cw_frames)), np.int64)
+    registered = np.array(sorted(reg.poses()), np.int64)
     _, line_views, line_rows = _line_views(tracks, frames, registered, cfg.line_min_frames)
     line_floor = np.minimum(line_views, cfg.min_line_views)
     kf_points = [obs.point_of[r] for r in obs.by_kf]  # sorted: rows are ordered by point

@@ -111,6 +111,10 @@ class Registration:
     frames are among `lost`)."""
     init_frames: tuple[int, int] = (-1, -1)
 
+    def poses(self) -> dict[int, np.ndarray]:
+        """T_cw of every frame with a pose: the keyframes' and those of the frames between them."""
+        return {**self.T_cw_frames, **self.T_cw}
+
 
 ProgressCallback = Callable[[int, int, str], None]
 
@@ -277,7 +281,7 @@ def register_keyframes(
             "tracked points; try a recording with sideways or forward motion, or a lower --step"
         )
     reg = _merge_segments(segments, cfg, index, seed)
-    registered = set(reg.T_cw) | set(reg.T_cw_frames)
+    registered = reg.poses()
     reg.lost = [f for f in range(len(tracks)) if f not in registered]
     reg.frames.sort()
     return reg
@@ -388,7 +392,7 @@ def _matched_tracks(index: TrackIndex, a: set[int], b: set[int], ratio: float) -
 
 def _posed(reg: Registration) -> int:
     """Frames a segment gives a pose (keyframes and the frames registered between them)."""
-    return len(set(reg.T_cw) | set(reg.T_cw_frames))
+    return len(reg.poses())
 
 
 def _merge_segments(
@@ -396,30 +400,13 @@ def _merge_segments(
 ) -> Registration:
     """Join the segments pairwise until no two can be: a Sim(3) on the points they share, by track id
     or by matching keyframe ORB descriptors (a revisit of a mapped place), or else on the frames both
-    posed (`_sim3_from_shared_frames`). Any two may join, not only a
-    segment and the largest: two segments after a blind stretch often share tracks with each other but
-    not with the map before it. The group posing the most frames is the map; the others are reported
-    and left out."""
+    posed (`_sim3_from_shared_frames`). Any two may join, not only a segment and the largest: two
+    segments after a blind stretch often share tracks with each other but not with the map before it.
+    The group posing the most frames is the map; the others are reported and left out."""
     groups = sorted(segments, key=_posed, reverse=True)
     failed: set[tuple[int, int]] = set()  # (id of the larger group, id of the smaller) that did not join
-    joined = True
-    while joined and len(groups) > 1:
-        joined = False
-        for i in range(len(groups)):
-            for j in range(i + 1, len(groups)):
-                key = (id(groups[i]), id(groups[j]))
-                if key in failed:
-                    continue
-                if _merge_into(groups[i], groups[j], cfg, index, seed):
-                    grown = groups[i]
-                    del groups[j]
-                    failed = {k for k in failed if id(grown) not in k}  # it may join others now
-                    groups.sort(key=_posed, reverse=True)
-                    joined = True
-                    break
-                failed.add(key)
-            if joined:
-                break
+    while len(groups) > 1 and _join_first(groups, failed, cfg, index, seed):
+        groups.sort(key=_posed, reverse=True)
     for seg in groups[1:]:
         log.warning(
             "tracking segment of frames %d-%d (%d keyframes) could not be joined to the map: left out",
@@ -427,9 +414,31 @@ def _merge_segments(
             max(seg.frames),
             len(seg.frames),
         )
-    posed = [sorted(set(seg.T_cw) | set(seg.T_cw_frames)) for seg in groups[1:]]
+    posed = [sorted(seg.poses()) for seg in groups[1:]]
     groups[0].segments_left_out = sorted((f[0], f[-1]) for f in posed)
     return groups[0]
+
+
+def _join_first(
+    groups: list[Registration],
+    failed: set[tuple[int, int]],
+    cfg: IncrementalConfig,
+    index: TrackIndex,
+    seed: int,
+) -> bool:
+    """Join the first pair of `groups` (larger first) not in `failed` that can be joined; the smaller
+    leaves `groups` and the grown one may be tried again with the others. False when none joins."""
+    for i, big in enumerate(groups):
+        for j in range(i + 1, len(groups)):
+            key = (id(big), id(groups[j]))
+            if key in failed:
+                continue
+            if _merge_into(big, groups[j], cfg, index, seed):
+                del groups[j]
+                failed -= {k for k in failed if id(big) in k}
+                return True
+            failed.add(key)
+    return False
 
 
 def _merge_into(
@@ -465,11 +474,11 @@ def _merge_into(
         max(base.frames),
         "the frames both posed" if sim.method == "shared frames" else f"{len(pairs)} shared points",
     )
+    posed = base.poses()
     for src, dst in ((seg.T_cw, base.T_cw), (seg.T_cw_frames, base.T_cw_frames)):
         for f, T in src.items():
-            if f in base.T_cw or f in base.T_cw_frames:
-                continue
-            dst[f] = similarity_T_cw(T, R, t, c)
+            if f not in posed:
+                dst[f] = similarity_T_cw(T, R, t, c)
     base.frames = sorted(set(base.frames) | {f for f in seg.frames if f in base.T_cw})
     for tid, X in seg.points_w.items():
         base.points_w.setdefault(tid, c * R @ X + t)
@@ -480,8 +489,7 @@ def _sim3_from_shared_frames(base: Registration, seg: Registration, cfg: Increme
     """Sim(3) from `seg`'s world to `base`'s from frames both posed (a segment tracked back into the
     previous one): rotation and translation from the poses, scale from the depths of the points both
     triangulated, as seen from those frames; None with too few frames or points, or poses that disagree."""
-    posed_base = {**base.T_cw_frames, **base.T_cw}
-    posed_seg = {**seg.T_cw_frames, **seg.T_cw}
+    posed_base, posed_seg = base.poses(), seg.poses()
     frames = sorted(set(posed_base) & set(posed_seg))
     shared = sorted(set(base.points_w) & set(seg.points_w))
     if len(frames) < cfg.merge_min_frames or len(shared) < cfg.merge_min_frame_points:
@@ -503,8 +511,8 @@ def _sim3_from_shared_frames(base: Registration, seg: Registration, cfg: Increme
     if len(ratios) < cfg.merge_min_frame_points:
         return None
     scale = float(np.median(ratios))
-    centres_b = np.stack([-posed_base[g][:3, :3].T @ posed_base[g][:3, 3] for g in frames])
-    centres_s = np.stack([-posed_seg[g][:3, :3].T @ posed_seg[g][:3, 3] for g in frames])
+    centres_b = invert(np.stack([posed_base[g] for g in frames]))[:, :3, 3]
+    centres_s = invert(np.stack([posed_seg[g] for g in frames]))[:, :3, 3]
     t = np.mean(centres_b - scale * centres_s @ R.T, axis=0)
     return Sim3(R, t, scale, "shared frames")
 
