@@ -521,7 +521,8 @@ def open_recording(
         raise InputError(f"{path}: none of the {n} selected frames decodes: {listed}")
     rec.bad_frames = []
     if not good:
-        where = "" if start_s is None and end_s is None else f" in the time range {start_s}..{end_s} s"
+        span = f"{start_s or 0:g} s to " + ("the end" if end_s is None else f"{end_s:g} s")
+        where = "" if start_s is None and end_s is None else f" in the time range {span} from the first frame"
         raise InputError(f"{path}: no decodable frame{where}; check the file and the time range")
     log.info(
         "%s: %s %dx%d (source %dx%d), %.3g fps, %d frames announced",
