@@ -300,11 +300,14 @@ def feature_tracks(
     weak = weak_links(point_frame, point_track, keyframes, cfg.weak_link_tracks, breaks)
     pairs = candidate_pairs(keyframes, weak, cfg)
 
+    used = sorted({k for pair in pairs for k in pair})
+    unit = {k: _unit(node_sift[starts[k] : ends[k]]) for k in used}  # once per keyframe, not per pair
+
     def link(pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, tuple[int, int, np.ndarray]] | None:
         """Verified matches of one keyframe pair as node rows (M, 2), their distances and the pair's
         geometry (frame rows and essential matrix), or None."""
         sa, sb = (slice(starts[k], ends[k]) for k in pair)
-        m, dist = match_pair(_unit(node_sift[sa]), _unit(node_sift[sb]), cfg.ratio)
+        m, dist = match_pair(unit[pair[0]], unit[pair[1]], cfg.ratio)
         if len(m) < cfg.min_inliers:
             return None
         ok, E = verify_pair(node_uv[sa][m[:, 0]], node_uv[sb][m[:, 1]], K, cfg.ransac_threshold_px, seed)
