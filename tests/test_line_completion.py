@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from papl_mapper.mapping.assemble import assemble_map
-from papl_mapper.mapping.line_completion import complete_lines, segment_line_errors
+from papl_mapper.mapping.line_completion import _lines_near_segments, complete_lines, segment_line_errors
 from papl_mapper.mapping.lines import LineEstimates
 from papl_mapper.tracks import Tracks
 
@@ -111,6 +111,25 @@ def test_projected_line_errors_known_answer():
     np.testing.assert_allclose(dist[0, 1], 3.0, atol=1e-9)
     np.testing.assert_allclose(overlap[0], [1.0, 1.0, 0.5], atol=1e-9)
     assert np.isinf(dist[1]).all() and (overlap[1] == 0).all()
+
+
+def test_prefilter_keeps_every_line_a_segment_can_match():
+    """The visibility prefilter of line completion leaves out only lines no segment could match: over
+    random 3D segments (many off-screen or behind) and random image segments, every pair within the
+    error limit with overlap is among the kept lines, and most off-screen lines are left out."""
+    rng = np.random.default_rng(3)
+    T_wc = np.eye(4)
+    mid = rng.uniform([-20, -15, -10], [20, 15, 30], (3000, 3))
+    d = rng.normal(size=(3000, 3))
+    ends = np.stack([mid - d, mid + d], axis=1)
+    segs = rng.uniform([0, 0, 0, 0], [640, 480, 640, 480], (200, 4))
+    limit = 3.0
+    dist, overlap = segment_line_errors(CAM.K, T_wc, ends, segs)
+    hit_lines = np.unique(np.nonzero((dist.max(axis=2) <= limit) & (overlap > 0))[0])
+    kept = _lines_near_segments(CAM.K, T_wc, ends, segs, limit)
+    assert len(hit_lines) > 0
+    assert np.isin(hit_lines, kept).all()
+    assert len(kept) < 0.6 * len(ends)
 
 
 @pytest.mark.parametrize("mapped_second_piece", [True, False])

@@ -71,6 +71,23 @@ def segment_line_errors(K: np.ndarray, T_wc: np.ndarray, ends_w: np.ndarray, xy:
     return np.where(ok[:, None, None], dist, np.inf), np.where(ok[:, None], overlap, 0.0)
 
 
+def _lines_near_segments(
+    K: np.ndarray, T_wc: np.ndarray, ends_w: np.ndarray, xy: np.ndarray, margin_px: float
+) -> np.ndarray:
+    """Rows of the 3D segments ends_w (M, 2, 3) whose image from T_wc can meet a segment of xy (S, 4)
+    within `margin_px`: in front of the camera, with the bounding box of their image overlapping that
+    of the segments grown by the margin. A segment within the margin of a line and overlapping its
+    projection lies within the margin of the projected segment, so no line left out could match."""
+    Xc = (ends_w - T_wc[:3, 3]) @ T_wc[:3, :3]  # (M, 2, 3)
+    front = (Xc[..., 2] > NEAR).all(axis=1)
+    z = np.where(front[:, None], Xc[..., 2], 1.0)
+    uv = (Xc @ K.T)[..., :2] / z[..., None]  # (M, 2, 2)
+    p = xy.reshape(-1, 2)
+    lo, hi = p.min(axis=0) - margin_px, p.max(axis=0) + margin_px
+    meets = (uv.max(axis=1) >= lo).all(axis=1) & (uv.min(axis=1) <= hi).all(axis=1)
+    return np.flatnonzero(front & meets)
+
+
 def complete_lines(
     tracks: Tracks,
     m: Map,
@@ -101,13 +118,19 @@ def complete_lines(
         rows = np.flatnonzero(tracks.line_frame == f)
         if len(rows) == 0:
             continue
-        dist, overlap = segment_line_errors(K, m.keyframes.T_wc[r], ln.endpoints_w, tracks.line_xy[rows])
+        near = (
+            _lines_near_segments(K, m.keyframes.T_wc[r], ln.endpoints_w, tracks.line_xy[rows], max_error_px)
+            if min_overlap > 0  # (with no overlap asked for, a line anywhere along the image line may match)
+            else np.arange(len(ln))
+        )
+        dist, overlap = segment_line_errors(K, m.keyframes.T_wc[r], ln.endpoints_w[near], tracks.line_xy[rows])
         hit = (dist.max(axis=2) <= max_error_px) & (overlap >= min_overlap)
-        for i, s in zip(*np.nonzero(hit), strict=True):
+        for k, s in zip(*np.nonzero(hit), strict=True):
+            i = near[k]
             t_line, t_seg = int(ln.ids[i]), int(tracks.line_track[rows[s]])
             if t_seg == t_line or (t_line, f) in seen:
                 continue
-            err = float(dist[i, s].mean())
+            err = float(dist[k, s].mean())
             key = (int(i), t_seg)
             cand[key] = min(cand.get(key, np.inf), err)
 
