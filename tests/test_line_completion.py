@@ -115,19 +115,25 @@ def test_projected_line_errors_known_answer():
 
 def test_prefilter_keeps_every_line_a_segment_can_match():
     """The visibility prefilter of line completion leaves out only lines no segment could match: over
-    random 3D segments (many off-screen or behind) and random image segments, every pair within the
-    error limit with overlap is among the kept lines, and most off-screen lines are left out."""
+    random 3D segments (many off-screen or behind) and image segments along the images of some of them
+    (reaching past their ends, 1 px noise), every pair within the error limit with overlap is among the
+    kept lines, and most lines that no segment reaches are left out."""
     rng = np.random.default_rng(3)
     T_wc = np.eye(4)
     mid = rng.uniform([-20, -15, -10], [20, 15, 30], (3000, 3))
     d = rng.normal(size=(3000, 3))
     ends = np.stack([mid - d, mid + d], axis=1)
-    segs = rng.uniform([0, 0, 0, 0], [640, 480, 640, 480], (200, 4))
+    front = np.flatnonzero((ends[..., 2] > 1.0).all(axis=1))[:400]
+    uv = (ends[front] @ CAM.K.T)[..., :2] / ends[front][..., 2:3]
+    t = rng.uniform(-0.4, 1.4, (len(front), 2, 1))
+    pieces = uv[:, :1] + t * (uv[:, 1:] - uv[:, :1]) + rng.normal(0, 1.0, (len(front), 2, 2))
+    inside = ((pieces >= 0) & (pieces <= [640, 480])).all(axis=(1, 2))
+    segs = np.concatenate([pieces[inside].reshape(-1, 4), rng.uniform(0, [640, 480, 640, 480], (100, 4))])
     limit = 3.0
     dist, overlap = segment_line_errors(CAM.K, T_wc, ends, segs)
     hit_lines = np.unique(np.nonzero((dist.max(axis=2) <= limit) & (overlap > 0))[0])
     kept = _lines_near_segments(CAM.K, T_wc, ends, segs, limit)
-    assert len(hit_lines) > 0
+    assert len(hit_lines) > 50
     assert np.isin(hit_lines, kept).all()
     assert len(kept) < 0.6 * len(ends)
 
