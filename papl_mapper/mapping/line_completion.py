@@ -123,7 +123,8 @@ def complete_lines(
             if min_overlap > 0  # (with no overlap asked for, a line anywhere along the image line may match)
             else np.arange(len(ln))
         )
-        dist, overlap = segment_line_errors(K, m.keyframes.T_wc[r], ln.endpoints_w[near], tracks.line_xy[rows])
+        T_wc = m.keyframes.T_wc[r]
+        dist, overlap = segment_line_errors(K, T_wc, ln.endpoints_w[near], tracks.line_xy[rows])
         hit = (dist.max(axis=2) <= max_error_px) & (overlap >= min_overlap)
         for k, s in zip(*np.nonzero(hit), strict=True):
             i = near[k]
