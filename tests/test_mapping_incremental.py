@@ -264,3 +264,16 @@ def test_segments_are_not_joined_on_frames_whose_poses_disagree():
     for f in range(34, 38):  # two shared frames (38, 39) are too few
         del base.T_cw[f]
     assert _sim3_from_shared_frames(base, seg, IncrementalConfig()) is None
+
+
+def test_frames_after_the_last_registered_one_get_a_segment_of_their_own():
+    """A cut three frames before the end (fewer than `max_lost_frames`): the first segment cannot
+    register those frames, and they are mapped as a segment of their own instead of never being tried
+    (they share nothing with the map, so it is named as left out)."""
+    tracks, _, _ = make_tracks(n_frames=40)
+    after = tracks.point_frame >= 37
+    tracks.point_track[after] += 100_000  # the same points, new tracks: nothing links them to before
+    reg = register_keyframes(tracks)
+    assert set(range(37)) <= set(reg.poses())
+    assert reg.segments_left_out == [(37, 39)]
+    assert reg.lost == [37, 38, 39]

@@ -362,6 +362,10 @@ def _extend(
             reg.T_cw_frames[f] = res.T_cw
         if progress:
             progress(f + 1, len(tracks), f"{len(reg.frames)} keyframes, {len(reg.points_w)} points")
+    else:
+        # the recording ended on frames this segment could not register (fewer than max_lost_frames of
+        # them: a sparse photo set, a cut near the end): a new segment may still map them
+        f -= misses
     # frames between the segment's start and its initialisation pair are tracked backwards, and on
     # into the previous segment's last frames, where new points give the two something to share
     for g in range(f1 - 1, max(0, start - cfg.segment_overlap_frames) - 1, -1):
