@@ -330,7 +330,6 @@ def _extend(
             misses += 1
             if misses >= cfg.max_lost_frames and f > f2:
                 log.info("tracking lost at frame %d: %s", f - misses + 1, "segment ends")
-                f -= misses  # the next segment may start right after the last registered frame
                 break
             continue
         misses = 0
@@ -362,10 +361,10 @@ def _extend(
             reg.T_cw_frames[f] = res.T_cw
         if progress:
             progress(f + 1, len(tracks), f"{len(reg.frames)} keyframes, {len(reg.points_w)} points")
-    else:
-        # the recording ended on frames this segment could not register (fewer than max_lost_frames of
-        # them: a sparse photo set, a cut near the end): a new segment may still map them
-        f -= misses
+    # the next segment may start right after the last registered frame: where tracking was lost, and
+    # where the recording ended on fewer than max_lost_frames frames this one could not register (a
+    # sparse photo set, a cut near the end)
+    f -= misses
     # frames between the segment's start and its initialisation pair are tracked backwards, and on
     # into the previous segment's last frames, where new points give the two something to share
     for g in range(f1 - 1, max(0, start - cfg.segment_overlap_frames) - 1, -1):

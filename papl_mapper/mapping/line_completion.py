@@ -47,14 +47,20 @@ class LineCompletionStats:
         return asdict(self)
 
 
+def _project_segments(K: np.ndarray, T_wc: np.ndarray, ends_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (M, 2, 2) of the endpoints of 3D segments ends_w (M, 2, 3) seen from camera T_wc, and
+    whether both lie in front of it (M,); a segment not in front gets finite placeholder pixels."""
+    Xc = (ends_w - T_wc[:3, 3]) @ T_wc[:3, :3]  # (M, 2, 3)
+    front = (Xc[..., 2] > NEAR).all(axis=1)
+    z = np.where(front[:, None], Xc[..., 2], 1.0)
+    return (Xc @ K.T)[..., :2] / z[..., None], front
+
+
 def segment_line_errors(K: np.ndarray, T_wc: np.ndarray, ends_w: np.ndarray, xy: np.ndarray):
     """Pixel distances (M, S, 2) of the endpoints of segments xy (S, 4) to the image lines of 3D
     segments ends_w (M, 2, 3) seen from camera T_wc, and the overlap (M, S) of each segment with the
     projected segment over the segment's own length; inf / 0 where a 3D endpoint is behind the camera."""
-    Xc = (ends_w - T_wc[:3, 3]) @ T_wc[:3, :3]  # (M, 2, 3)
-    front = (Xc[..., 2] > NEAR).all(axis=1)
-    z = np.where(front[:, None], Xc[..., 2], 1.0)
-    uv = (Xc @ K.T)[..., :2] / z[..., None]  # (M, 2, 2)
+    uv, front = _project_segments(K, T_wc, ends_w)
     a, b = uv[:, 0], uv[:, 1]
     ab = b - a
     length = np.linalg.norm(ab, axis=1)
@@ -78,10 +84,7 @@ def _lines_near_segments(
     within `margin_px`: in front of the camera, with the bounding box of their image overlapping that
     of the segments grown by the margin. A segment within the margin of a line and overlapping its
     projection lies within the margin of the projected segment, so no line left out could match."""
-    Xc = (ends_w - T_wc[:3, 3]) @ T_wc[:3, :3]  # (M, 2, 3)
-    front = (Xc[..., 2] > NEAR).all(axis=1)
-    z = np.where(front[:, None], Xc[..., 2], 1.0)
-    uv = (Xc @ K.T)[..., :2] / z[..., None]  # (M, 2, 2)
+    uv, front = _project_segments(K, T_wc, ends_w)
     p = xy.reshape(-1, 2)
     lo, hi = p.min(axis=0) - margin_px, p.max(axis=0) + margin_px
     meets = (uv.max(axis=1) >= lo).all(axis=1) & (uv.min(axis=1) <= hi).all(axis=1)
@@ -118,12 +121,12 @@ def complete_lines(
         rows = np.flatnonzero(tracks.line_frame == f)
         if len(rows) == 0:
             continue
+        T_wc = m.keyframes.T_wc[r]
         near = (
-            _lines_near_segments(K, m.keyframes.T_wc[r], ln.endpoints_w, tracks.line_xy[rows], max_error_px)
+            _lines_near_segments(K, T_wc, ln.endpoints_w, tracks.line_xy[rows], max_error_px)
             if min_overlap > 0  # (with no overlap asked for, a line anywhere along the image line may match)
             else np.arange(len(ln))
         )
-        T_wc = m.keyframes.T_wc[r]
         dist, overlap = segment_line_errors(K, T_wc, ln.endpoints_w[near], tracks.line_xy[rows])
         hit = (dist.max(axis=2) <= max_error_px) & (overlap >= min_overlap)
         for k, s in zip(*np.nonzero(hit), strict=True):
