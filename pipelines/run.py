@@ -48,6 +48,7 @@ from papl_mapper.mapping.frames import keyframe_poses
 from papl_mapper.mapping.incremental import Registration, register_keyframes
 from papl_mapper.mapping.line_completion import complete_map_lines
 from papl_mapper.mapping.lines import LineEstimates
+from papl_mapper.mapping.rotation_averaging import rotation_checked
 from papl_mapper.mapping.structure import structured_map, triangulate_map_lines, update_structure
 from papl_mapper.mapping.track_completion import complete_map
 from papl_mapper.mapping.windowed import WindowedRefiner
@@ -431,6 +432,11 @@ def _points_ba(
     m = assemble_map(tracks, T_wc, reg.points_w, LineEstimates.empty())
     with timer.stage("ba_points"):
         m, stats.ba_points = _ba(m, cfg, progress, "BA (points)")
+    if cfg.rotations.enabled:
+        with timer.stage("rotation_check"), progress("BA (points, averaged rotations)") as cb:
+            report = (lambda i, n, cost: cb(i, n, f"cost {cost:.6g}")) if cb is not None else None
+            m, check = rotation_checked(m, cfg.ba, cfg.rotations, cfg.max_point_error_px, report)
+            stats.rotation_check = check.as_dict()
     if cfg.completion.enabled:
         with timer.stage("completion"):
             stats.completion = complete_map(tracks, m, cfg.completion).as_dict()

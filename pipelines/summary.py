@@ -45,6 +45,8 @@ class MappingStats:
     revisits: list[dict[str, Any]] = field(default_factory=list)
     ba_points: dict[str, Any] | None = None
     """The last points-only BA (the statistics of `mapping.adjust.adjust`)."""
+    rotation_check: dict[str, Any] | None = None
+    """The first points BA's rotations against those averaged from pairwise two-view geometry."""
     completion: dict[str, int] | None = None
     """Track completion after the points BA."""
     ba: dict[str, Any] | None = None

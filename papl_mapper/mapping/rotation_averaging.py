@@ -1,0 +1,243 @@
+"""Keyframe rotations averaged from pairwise two-view geometry: a second start for the global BA.
+
+Registration chains PnP poses. Where keyframes see the scene with little parallax (a photo set, a pan),
+small errors of early points turn later rotations into a consistent but wrong configuration, a local
+minimum the global BA does not leave. The relative rotation of two keyframes from their essential
+matrix needs no structure, and averaged over every well-covisible pair (robustly, on SO(3)) it holds
+no such drift; global SfM (GLOMAP) starts from it. Here it checks the BA's rotations: where they
+disagree, the BA is run again from the averaged rotations, and the start that ends at the lower cost
+over the same observations is kept (maximum likelihood decides, not the check).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import gtsam
+import numpy as np
+from scipy.sparse import coo_matrix
+
+from papl_mapper.backend import BAConfig, global_ba
+from papl_mapper.backend.ba import ProgressFn
+from papl_mapper.errors import GeometryError, OptimizationError
+from papl_mapper.geometry.se3 import project_points, rotation_angle_deg
+from papl_mapper.geometry.triangulation import triangulate_points
+from papl_mapper.geometry.two_view import find_essential
+from papl_mapper.map import Map
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RotationCheckConfig:
+    """Settings of the rotation-averaging check after the first global BA."""
+
+    enabled: bool = True
+    """Average pairwise rotations and, where the BA's rotations disagree, try the BA from them."""
+    neighbours: int = 6
+    """Each keyframe is paired with this many keyframes it shares most points with."""
+    min_shared: int = 30
+    """Fewest shared points for a pair's essential matrix."""
+    ransac_threshold_px: float = 1.0
+    """Essential-matrix inlier threshold (pixels)."""
+    min_inlier_ratio: float = 0.5
+    """A pair whose essential matrix keeps fewer of its shared points is left out: the observations
+    are the BA's inliers, so a poor fit means a degenerate pair (no baseline), not outliers."""
+    sigma_deg: float = 0.1
+    """Standard deviation of one pairwise rotation (degrees); a Huber loss beyond 1.345 sigma."""
+    check_deg: float = 0.5
+    """The BA's rotations start a second BA when they miss the pairwise rotations by more than this at
+    the median pair..."""
+    check_ratio: float = 3.0
+    """...and by this many times more than the averaged rotations do (where the pairwise rotations are
+    noisy, as from a rolling-shutter camera, both miss them alike: no second start)."""
+
+
+@dataclass
+class RotationCheck:
+    """What the check found: the pairs used, how far the BA's and the averaged rotations miss them at the
+    median pair, the largest keyframe disagreement, and when a second BA ran, both costs."""
+
+    pairs: int = 0
+    residual_ba_deg: float = 0.0
+    residual_averaged_deg: float = 0.0
+    max_disagreement_deg: float = 0.0
+    second_start: bool = False
+    cost_kept: float | None = None
+    cost_other: float | None = None
+    kept: str = "registration"
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def covisible_pairs(m: Map, neighbours: int, min_shared: int) -> list[tuple[int, int]]:
+    """Keyframe row pairs (i < j): each keyframe with the `neighbours` others it shares the most points
+    with, at least `min_shared`."""
+    n = len(m.keyframes)
+    if n < 2 or not len(m.points.obs_ids):
+        return []
+    kf_row = np.searchsorted(m.keyframes.ids, m.points.obs_ids[:, 1])
+    pt_row = np.searchsorted(m.points.ids, m.points.obs_ids[:, 0])
+    A = coo_matrix((np.ones(len(kf_row)), (kf_row, pt_row)), shape=(n, len(m.points))).tocsr()
+    A.data[:] = 1.0  # a point seen twice by one keyframe counts once
+    shared = (A @ A.T).toarray()
+    np.fill_diagonal(shared, 0)
+    pairs = set()
+    for i in range(n):
+        best = np.argsort(-shared[i], kind="stable")[:neighbours]
+        pairs.update((min(i, int(j)), max(i, int(j))) for j in best if shared[i, j] >= min_shared)
+    return sorted(pairs)
+
+
+def relative_rotation(
+    uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, cfg: RotationCheckConfig
+) -> np.ndarray | None:
+    """R_ba (camera a to camera b) from matched pixels by the essential matrix, or None (degenerate)."""
+    E, mask = find_essential(uv_a, uv_b, K, cv2.USAC_ACCURATE, cfg.ransac_threshold_px)
+    if E is None or mask is None or mask.sum() < cfg.min_inlier_ratio * len(uv_a):
+        return None
+    n_front, R, _, _ = cv2.recoverPose(E[:3], uv_a, uv_b, K, mask=mask.copy())
+    return R if n_front >= cfg.min_inlier_ratio * len(uv_a) else None
+
+
+def average_rotations(
+    R_init: np.ndarray, measurements: list[tuple[int, int, np.ndarray]], sigma_deg: float
+) -> np.ndarray:
+    """(N, 3, 3) world-from-camera rotations fitting R_b^T R_a = R_ba for each (a, b, R_ba), robustly
+    (Huber), started from `R_init`; the first rotation is held (the gauge)."""
+    graph = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(1.345), gtsam.noiseModel.Isotropic.Sigma(3, np.radians(sigma_deg))
+    )
+    for a, b, R_ba in measurements:
+        graph.add(gtsam.BetweenFactorRot3(a, b, gtsam.Rot3(R_ba.T), noise))
+    graph.add(gtsam.PriorFactorRot3(0, gtsam.Rot3(R_init[0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-9)))
+    values = gtsam.Values()
+    for i, R in enumerate(R_init):
+        values.insert(i, gtsam.Rot3(R))
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+    return np.array([result.atRot3(i).matrix() for i in range(len(R_init))])
+
+
+def averaged_rotations(
+    m: Map, cfg: RotationCheckConfig
+) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
+    """The map's keyframe rotations averaged from the pairwise rotations of covisible keyframes (those
+    no pair reaches keep their own), and those pairwise rotations (a, b, R_ba)."""
+    T = m.keyframes.T_wc
+    pairs = covisible_pairs(m, cfg.neighbours, cfg.min_shared)
+    obs_kf = np.searchsorted(m.keyframes.ids, m.points.obs_ids[:, 1])
+    by_kf = [
+        dict(zip(m.points.obs_ids[obs_kf == i, 0].tolist(), m.points.obs_uv[obs_kf == i], strict=True))
+        for i in range(len(T))
+    ]
+    measurements = []
+    for a, b in pairs:
+        common = sorted(by_kf[a].keys() & by_kf[b].keys())
+        uv_a = np.array([by_kf[a][p] for p in common])
+        uv_b = np.array([by_kf[b][p] for p in common])
+        R_ba = relative_rotation(uv_a, uv_b, m.camera.K, cfg)
+        if R_ba is not None:
+            measurements.append((a, b, R_ba))
+    if not measurements:
+        return T[:, :3, :3].copy(), []
+    return average_rotations(T[:, :3, :3], measurements, cfg.sigma_deg), measurements
+
+
+def pair_residual_deg(R_wc: np.ndarray, measurements: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
+    """(M,) angle between each measured R_ba and the one the rotations `R_wc` give (R_b^T R_a)."""
+    a, b = (np.array([mm[i] for mm in measurements]) for i in (0, 1))
+    R_ba = np.array([mm[2] for mm in measurements])
+    return rotation_angle_deg(R_ba, np.swapaxes(R_wc[b], 1, 2) @ R_wc[a])
+
+
+def disagreement_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+    """(N,) angle of each R_a[i] from R_b[i] after the common rotation G (R_a ~ G R_b) that fits best."""
+    M = np.einsum("nij,nkj->ik", R_a, R_b)  # sum R_a R_b^T
+    U, _, Vt = np.linalg.svd(M)
+    G = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return rotation_angle_deg(R_a, G @ R_b)
+
+
+def with_rotations(m: Map, R_wc: np.ndarray) -> Map:
+    """A copy of `m` with the keyframe rotations `R_wc` (camera centres kept) and its points triangulated
+    anew from those poses; a point the new poses cannot triangulate turns with its first keyframe."""
+    out = Map(m.camera, m.keyframes, m.points, m.lines, m.axes, dict(m.metadata))
+    kf = m.keyframes
+    T_new = kf.T_wc.copy()
+    T_new[:, :3, :3] = R_wc
+    out.keyframes = type(kf)(kf.ids.copy(), kf.frame_index.copy(), kf.timestamp.copy(), T_new)
+    pts = m.points
+    kf_row = np.searchsorted(kf.ids, pts.obs_ids[:, 1])
+    pt_row = np.searchsorted(pts.ids, pts.obs_ids[:, 0])
+    X, ok = triangulate_points(pt_row, T_new[kf_row], m.camera.K, pts.obs_uv, len(pts))
+    first = np.full(len(pts), len(kf_row))
+    np.minimum.at(first, pt_row, np.arange(len(kf_row)))
+    k = kf_row[first[~ok]]
+    turn = R_wc[k] @ np.swapaxes(kf.T_wc[k, :3, :3], 1, 2)
+    C = kf.T_wc[k, :3, 3]
+    X[~ok] = C + np.einsum("nij,nj->ni", turn, pts.xyz[~ok] - C)
+    out.points = type(pts)(pts.ids.copy(), X, pts.color.copy(), pts.obs_ids.copy(), pts.obs_uv.copy())
+    return out
+
+
+def point_cost(m: Map, sigma_px: float, huber_k: float, max_error_px: float) -> float:
+    """Half the summed Huber loss of the whitened point reprojection errors (gtsam's robust cost) over
+    every observation of the map, each error capped at `max_error_px` (the culling limit: beyond it an
+    observation is an outlier either way, and a point behind its camera counts as one)."""
+    pts = m.points
+    kf_row = np.searchsorted(m.keyframes.ids, pts.obs_ids[:, 1])
+    pt_row = np.searchsorted(pts.ids, pts.obs_ids[:, 0])
+    uv, z = project_points(m.camera.K, m.keyframes.T_wc[kf_row], pts.xyz[pt_row])
+    err = np.where(z > 0, np.minimum(np.linalg.norm(uv - pts.obs_uv, axis=1), max_error_px), max_error_px)
+    e = err / sigma_px
+    loss = np.where(e <= huber_k, 0.5 * e**2, huber_k * e - 0.5 * huber_k**2)
+    return float(loss.sum())
+
+
+def rotation_checked(
+    m: Map, ba: BAConfig, cfg: RotationCheckConfig, max_error_px: float, progress: ProgressFn | None = None
+) -> tuple[Map, RotationCheck]:
+    """`m` (a map after its global BA) checked against its averaged rotations: where they disagree by more
+    than `cfg.check_deg`, a global BA from the averaged rotations, and of the two the map whose point
+    cost over the same observations (errors capped at `max_error_px`) is lower."""
+    check = RotationCheck()
+    if len(m.keyframes) < 3:
+        return m, check
+    R_ba = m.keyframes.T_wc[:, :3, :3]
+    R_avg, measurements = averaged_rotations(m, cfg)
+    check.pairs = len(measurements)
+    if not measurements:
+        return m, check
+    check.residual_ba_deg = float(np.median(pair_residual_deg(R_ba, measurements)))
+    check.residual_averaged_deg = float(np.median(pair_residual_deg(R_avg, measurements)))
+    check.max_disagreement_deg = float(disagreement_deg(R_ba, R_avg).max())
+    cost = point_cost(m, ba.point_sigma_px, ba.huber_k, max_error_px)
+    check.cost_kept = cost
+    if check.residual_ba_deg <= max(cfg.check_deg, cfg.check_ratio * check.residual_averaged_deg):
+        return m, check
+    check.second_start = True
+    try:
+        other = global_ba(with_rotations(m, R_avg), ba, progress).map
+    except (GeometryError, OptimizationError) as exc:
+        log.info("rotation check: the BA from averaged rotations failed (%s); the registration's start kept", exc)
+        return m, check
+    other.metadata = dict(m.metadata)
+    check.cost_other = point_cost(other, ba.point_sigma_px, ba.huber_k, max_error_px)
+    log.info(
+        "rotation check: keyframe rotations miss %d pairwise rotations by %.2f deg (median; averaged ones "
+        "%.2f deg, up to %.2f deg away); BA from the averaged rotations ends at cost %.6g against %.6g",
+        check.pairs,
+        check.residual_ba_deg,
+        check.residual_averaged_deg,
+        check.max_disagreement_deg,
+        check.cost_other,
+        cost,
+    )
+    if check.cost_other < cost:
+        check.kept, check.cost_kept, check.cost_other = "averaged", check.cost_other, cost
+        return other, check
+    return m, check
