@@ -95,12 +95,39 @@ def covisible_pairs(m: Map, neighbours: int, min_shared: int) -> list[tuple[int,
 def relative_rotation(
     uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, cfg: RotationCheckConfig
 ) -> np.ndarray | None:
-    """R_ba (camera a to camera b) from matched pixels by the essential matrix, or None (degenerate)."""
+    """R_ba (camera a to camera b) from matched pixels by the essential matrix, or None where the pair
+    is degenerate (too few inliers, or too few of them in front of both cameras: no baseline)."""
     E, mask = find_essential(uv_a, uv_b, K, cv2.USAC_ACCURATE, cfg.ransac_threshold_px)
-    if E is None or mask is None or mask.sum() < cfg.min_inlier_ratio * len(uv_a):
+    need = cfg.min_inlier_ratio * len(uv_a)
+    if E is None or mask is None or mask.sum() < need:
         return None
-    n_front, R, _, _ = cv2.recoverPose(E[:3], uv_a, uv_b, K, mask=mask.copy())
-    return R if n_front >= cfg.min_inlier_ratio * len(uv_a) else None
+    inl = mask.ravel().astype(bool)
+    K_inv = np.linalg.inv(K)
+    f_a = np.column_stack([uv_a[inl], np.ones(inl.sum())]) @ K_inv.T
+    f_b = np.column_stack([uv_b[inl], np.ones(inl.sum())]) @ K_inv.T
+    f_a /= np.linalg.norm(f_a, axis=1, keepdims=True)
+    f_b /= np.linalg.norm(f_b, axis=1, keepdims=True)
+    R1, R2, t = cv2.decomposeEssentialMat(E[:3])
+    best, best_front = None, -1
+    for R in (R1, R2):
+        for sign in (1.0, -1.0):
+            front = _in_front(R, sign * t.ravel(), f_a, f_b)
+            if front > best_front:
+                best, best_front = R, front
+    return best if best_front >= need else None
+
+
+def _in_front(R: np.ndarray, t: np.ndarray, f_a: np.ndarray, f_b: np.ndarray) -> int:
+    """How many unit ray pairs meet in front of both cameras (x_b = R x_a + t): depths d_a, d_b of the
+    closest approach of d_a R f_a + t and d_b f_b, by least squares per pair."""
+    g = f_a @ R.T
+    c = np.sum(g * f_b, axis=1)
+    det = 1.0 - c**2
+    gt, ft = g @ t, f_b @ t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d_a = (-gt + c * ft) / det
+        d_b = (-c * gt + ft) / det
+    return int(np.sum((det > 1e-12) & (d_a > 0) & (d_b > 0)))
 
 
 def average_rotations(
@@ -176,10 +203,12 @@ def with_rotations(m: Map, R_wc: np.ndarray) -> Map:
     X, ok = triangulate_points(pt_row, T_new[kf_row], m.camera.K, pts.obs_uv, len(pts))
     first = np.full(len(pts), len(kf_row))
     np.minimum.at(first, pt_row, np.arange(len(kf_row)))
-    k = kf_row[first[~ok]]
+    X[~ok] = pts.xyz[~ok]  # unobserved points stay where they are
+    turned = np.flatnonzero(~ok & (first < len(kf_row)))
+    k = kf_row[first[turned]]
     turn = R_wc[k] @ np.swapaxes(kf.T_wc[k, :3, :3], 1, 2)
     C = kf.T_wc[k, :3, 3]
-    X[~ok] = C + np.einsum("nij,nj->ni", turn, pts.xyz[~ok] - C)
+    X[turned] = C + np.einsum("nij,nj->ni", turn, pts.xyz[turned] - C)
     out.points = type(pts)(pts.ids.copy(), X, pts.color.copy(), pts.obs_ids.copy(), pts.obs_uv.copy())
     return out
 
