@@ -162,3 +162,23 @@ def test_a_drifted_map_is_restarted_from_the_averaged_rotations() -> None:
     assert check.cost_kept < check.cost_other
     assert check.residual_ba_deg > check.residual_averaged_deg * 3
     assert _rotation_errors_deg(out.keyframes.T_wc[:, :3, :3], R_true).max() < 0.1
+
+
+def test_a_ba_holding_rotations_moves_only_positions_and_points() -> None:
+    """global_ba(hold_rotations=True) from the true rotations and disturbed centres and points: the
+    rotations stay, the positions return to the truth (up to the gauge's scale)."""
+    from papl_mapper.backend import global_ba
+
+    m = _scene(noise_px=0.0)
+    truth = m.keyframes.T_wc.copy()
+    rng = np.random.default_rng(5)
+    m.keyframes.T_wc[2:, :3, 3] += rng.normal(0, 0.03, (len(truth) - 2, 3))
+    m.points.xyz += rng.normal(0, 0.05, m.points.xyz.shape)
+    out = global_ba(m, BAConfig(max_iterations=50, relative_error_tol=1e-9), hold_rotations=True).map
+    R_out = out.keyframes.T_wc[:, :3, :3]
+    assert rotation_angle_deg(R_out, truth[:, :3, :3]).max() < 0.01
+    C, C_true = out.keyframes.T_wc[:, :3, 3], truth[:, :3, 3]
+    s = np.linalg.norm(C[1] - C[0]) / np.linalg.norm(C_true[1] - C_true[0])
+    assert np.abs((C - C[0]) / s - (C_true - C_true[0])).max() < 1e-3
+    free = global_ba(_drifted(_scene(noise_px=0.0), 0.2), BAConfig(max_iterations=5)).map
+    assert rotation_angle_deg(free.keyframes.T_wc[:, :3, :3], _drifted(_scene(noise_px=0.0), 0.2).keyframes.T_wc[:, :3, :3]).max() > 0.1

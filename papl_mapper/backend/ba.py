@@ -54,6 +54,7 @@ from papl_mapper.map import Map
 log = logging.getLogger(__name__)
 
 FIXED_POSE_NOISE = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+HELD_ROTATION_NOISE = gtsam.noiseModel.Isotropic.Sigma(3, 1e-4)  # radians: 0.006 degrees
 """Poses held at their value: radians and map units, far below anything observable."""
 
 ProgressFn = Callable[[int, int, float], None]
@@ -100,15 +101,19 @@ class BAResult:
         return {k: v for k, v in self.__dict__.items() if k != "map"}
 
 
-def global_ba(m: Map, config: BAConfig | None = None, progress: ProgressFn | None = None) -> BAResult:
+def global_ba(
+    m: Map, config: BAConfig | None = None, progress: ProgressFn | None = None, hold_rotations: bool = False
+) -> BAResult:
     """Adjust every keyframe, point, line and axis of `m`; the monocular gauge is fixed by holding the first
-    keyframe and the distance from it to the next keyframe that moved."""
+    keyframe and the distance from it to the next keyframe that moved. `hold_rotations`: the keyframe
+    rotations stay as they are (tight priors); positions, points and lines move (global positioning
+    from known rotations)."""
     config = config or BAConfig()
     if config.huber_k_start is not None:
-        return _graduated(m, config, progress, lambda mm, cfg, pr: global_ba(mm, cfg, pr))
+        return _graduated(m, config, progress, lambda mm, cfg, pr: global_ba(mm, cfg, pr, hold_rotations))
     t0 = time.perf_counter()
     problem = build_problem(m, config)
-    return _run(m, problem, config, progress, t0)
+    return _run(m, problem, config, progress, t0, hold_rotations)
 
 
 def local_ba(
@@ -180,7 +185,7 @@ class _Graph:
         return float(self.base.error(values)) + sum(b.cost(values) for b in self.batches.values())
 
 
-def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
+def _build_graph(m: Map, pb: Problem, config: BAConfig, hold_rotations: bool = False) -> _Graph:
     T = m.keyframes.T_wc
     K = m.camera.K
     graph = gtsam.NonlinearFactorGraph()
@@ -194,6 +199,9 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig) -> _Graph:
         # a tight prior, not NonlinearEqualityPose3: gtsam eliminates hard constraints by QR, many times
         # slower for the same solution (benchmarks/RESULTS.md)
         graph.add(gtsam.PriorFactorPose3(X(i), gtsam.Pose3(T[i]), FIXED_POSE_NOISE))
+    if hold_rotations:
+        for i in np.flatnonzero(pose_var):
+            graph.add(gtsam.PoseRotationPrior3D(X(i), gtsam.Pose3(T[i]), HELD_ROTATION_NOISE))
     if pb.gauge is not None and config.optimize_poses:
         a, b = pb.gauge
         dist = float(np.linalg.norm(T[b, :3, 3] - T[a, :3, 3]))
@@ -376,8 +384,10 @@ def _lm_stage(
     return False
 
 
-def _run(m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0: float) -> BAResult:
-    g = _build_graph(m, pb, config)
+def _run(
+    m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0: float, hold_rotations: bool = False
+) -> BAResult:
+    g = _build_graph(m, pb, config, hold_rotations)
     setup_s = time.perf_counter() - t0
     init_state = _state(m, pb, g.values, g.batches, config)
     initial_rms = _rms(m, pb, init_state)

@@ -4,9 +4,11 @@ Registration chains PnP poses. Where keyframes see the scene with little paralla
 small errors of early points turn later rotations into a consistent but wrong configuration, a local
 minimum the global BA does not leave. The relative rotation of two keyframes from their essential
 matrix needs no structure, and averaged over every well-covisible pair (robustly, on SO(3)) it holds
-no such drift; global SfM (GLOMAP) starts from it. Here it checks the BA's rotations: where they
-disagree, the BA is run again from the averaged rotations, and the start that ends at the lower cost
-over the same observations is kept (maximum likelihood decides, not the check).
+no such drift; global SfM (GLOMAP) starts from it. Here it checks the BA's rotations: where they miss
+the pairwise rotations far more than the averaged ones do, the BA runs again from the averaged
+rotations, first holding them (camera positions and points found for them, as GLOMAP's global
+positioning does) then freeing everything, and of the two maps the one at the lower cost over the
+same observations is kept (maximum likelihood decides, not the check).
 """
 
 from __future__ import annotations
@@ -250,7 +252,10 @@ def rotation_checked(
         return m, check
     check.second_start = True
     try:
-        other = global_ba(with_rotations(m, R_avg), ba, progress).map
+        # positions and points from the averaged rotations first (held), then everything: started from
+        # the registration's positions with free rotations, the BA turns back into the registration's fit
+        held = global_ba(with_rotations(m, R_avg), ba, progress, hold_rotations=True).map
+        other = global_ba(held, ba, progress).map
     except (GeometryError, OptimizationError) as exc:
         log.info("rotation check: the BA from averaged rotations failed (%s); the registration's start kept", exc)
         return m, check
