@@ -85,12 +85,15 @@ def covisible_pairs(m: Map, neighbours: int, min_shared: int) -> list[tuple[int,
     pt_row = np.searchsorted(m.points.ids, m.points.obs_ids[:, 0])
     A = coo_matrix((np.ones(len(kf_row)), (kf_row, pt_row)), shape=(n, len(m.points))).tocsr()
     A.data[:] = 1.0  # a point seen twice by one keyframe counts once
-    shared = (A @ A.T).toarray()
-    np.fill_diagonal(shared, 0)
+    shared = (A @ A.T).tocsr()  # sparse: a long recording's keyframes each see a few others
+    shared.setdiag(0)
+    shared.eliminate_zeros()
     pairs = set()
     for i in range(n):
-        best = np.argsort(-shared[i], kind="stable")[:neighbours]
-        pairs.update((min(i, int(j)), max(i, int(j))) for j in best if shared[i, j] >= min_shared)
+        lo, hi = shared.indptr[i], shared.indptr[i + 1]
+        cols, counts = shared.indices[lo:hi], shared.data[lo:hi]
+        best = np.argsort(-counts, kind="stable")[:neighbours]
+        pairs.update((min(i, int(j)), max(i, int(j))) for j in cols[best[counts[best] >= min_shared]])
     return sorted(pairs)
 
 
@@ -157,18 +160,16 @@ def averaged_rotations(
     """The map's keyframe rotations averaged from the pairwise rotations of covisible keyframes (those
     no pair reaches keep their own), and those pairwise rotations (a, b, R_ba)."""
     T = m.keyframes.T_wc
-    pairs = covisible_pairs(m, cfg.neighbours, cfg.min_shared)
     obs_kf = np.searchsorted(m.keyframes.ids, m.points.obs_ids[:, 1])
-    by_kf = [
-        dict(zip(m.points.obs_ids[obs_kf == i, 0].tolist(), m.points.obs_uv[obs_kf == i], strict=True))
-        for i in range(len(T))
-    ]
+    order = np.argsort(obs_kf, kind="stable")
+    bounds = np.searchsorted(obs_kf[order], np.arange(len(T) + 1))
     measurements = []
-    for a, b in pairs:
-        common = sorted(by_kf[a].keys() & by_kf[b].keys())
-        uv_a = np.array([by_kf[a][p] for p in common])
-        uv_b = np.array([by_kf[b][p] for p in common])
-        R_ba = relative_rotation(uv_a, uv_b, m.camera.K, cfg)
+    for a, b in covisible_pairs(m, cfg.neighbours, cfg.min_shared):
+        rows_a, rows_b = (order[bounds[k] : bounds[k + 1]] for k in (a, b))
+        _, ia, ib = np.intersect1d(
+            m.points.obs_ids[rows_a, 0], m.points.obs_ids[rows_b, 0], assume_unique=False, return_indices=True
+        )
+        R_ba = relative_rotation(m.points.obs_uv[rows_a[ia]], m.points.obs_uv[rows_b[ib]], m.camera.K, cfg)
         if R_ba is not None:
             measurements.append((a, b, R_ba))
     if not measurements:
