@@ -72,6 +72,7 @@ def main() -> int:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/papl_adversarial"))
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override, every variant")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR, format="%(message)s")
     rows = []
@@ -83,7 +84,9 @@ def main() -> int:
             out = args.cache / "runs" / f"{case}_{variant}"
             shutil.rmtree(out, ignore_errors=True)
             row = {"case": case, "variant": variant, "frames": n_frames}
-            cfg = load_config(RunConfig, None, [*PRESETS[variant], f"input.camera={folder / 'camera.json'}"])
+            cfg = load_config(
+                RunConfig, None, [*PRESETS[variant], *args.set, f"input.camera={folder / 'camera.json'}"]
+            )
             t0 = time.perf_counter()
             try:
                 run(_source(folder), out, cfg)

@@ -199,7 +199,7 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
                         ),
                     )
                 ]
-                for name in ("real.json", "real_step2.json", "real_step3.json")
+                for name in ("real.json", "real_step2.json", "real_step3.json", "real_step4.json")
             },
             "scale.json": [
                 Rows(
