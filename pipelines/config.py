@@ -135,7 +135,7 @@ class RunConfig:
     seed: int = 0
     """Seed of every random choice, so the same input gives the same map: the pipeline passes it to
     each stage that draws (vanishing-point search, feature verification, initialisation, PnP, segment
-    merging, line directions, focal check); no stage has a seed setting of its own."""
+    merging, rotation check, line directions, focal check); no stage has a seed setting of its own."""
     local_ba_window: int = 15
     """Keyframes optimised by each windowed BA."""
     stray_line_margin: float = 0.2

@@ -435,7 +435,7 @@ def _points_ba(
     if cfg.rotations.enabled:
         with timer.stage("rotation_check"), progress("BA (points, averaged rotations)") as cb:
             report = (lambda i, n, cost: cb(i, n, f"cost {cost:.6g}")) if cb is not None else None
-            m, check = rotation_checked(m, cfg.ba, cfg.rotations, cfg.max_point_error_px, report)
+            m, check = rotation_checked(m, cfg.ba, cfg.rotations, cfg.max_point_error_px, report, cfg.seed)
             stats.rotation_check = check.as_dict()
     if cfg.completion.enabled:
         with timer.stage("completion"):

@@ -45,7 +45,9 @@ def _scene(n_kf: int = 8, n_pts: int = 400, noise_px: float = 0.3, seed: int = 0
         obs_ids.append(np.column_stack([pids + 100, np.full(len(pids), kf_ids[i])]))
         obs_uv.append(uv[seen] + rng.normal(0, noise_px, (len(pids), 2)))
     kf = Keyframes(kf_ids, np.arange(n_kf) * 4, np.arange(n_kf) * 0.5, T)
-    pts = Points(np.arange(n_pts) + 100, X, np.zeros((n_pts, 3), np.uint8), np.vstack(obs_ids), np.vstack(obs_uv))
+    pts = Points(
+        np.arange(n_pts) + 100, X, np.zeros((n_pts, 3), np.uint8), np.vstack(obs_ids), np.vstack(obs_uv)
+    )
     return Map(cam, kf, pts, Lines.empty(0), Axes.empty(), {"units": "arbitrary"})
 
 
@@ -64,7 +66,9 @@ def test_relative_rotation_matches_the_true_one(noise_px: float) -> None:
     for a, b in [(0, 1), (0, 4), (2, 7)]:
         rows_a = m.points.obs_ids[:, 1] == m.keyframes.ids[a]
         rows_b = m.points.obs_ids[:, 1] == m.keyframes.ids[b]
-        common, ia, ib = np.intersect1d(m.points.obs_ids[rows_a, 0], m.points.obs_ids[rows_b, 0], return_indices=True)
+        common, ia, ib = np.intersect1d(
+            m.points.obs_ids[rows_a, 0], m.points.obs_ids[rows_b, 0], return_indices=True
+        )
         R_ba = relative_rotation(m.points.obs_uv[rows_a][ia], m.points.obs_uv[rows_b][ib], m.camera.K, cfg)
         assert R_ba is not None and len(common) > 100
         true = T[b, :3, :3].T @ T[a, :3, :3]
@@ -181,4 +185,9 @@ def test_a_ba_holding_rotations_moves_only_positions_and_points() -> None:
     s = np.linalg.norm(C[1] - C[0]) / np.linalg.norm(C_true[1] - C_true[0])
     assert np.abs((C - C[0]) / s - (C_true - C_true[0])).max() < 1e-3
     free = global_ba(_drifted(_scene(noise_px=0.0), 0.2), BAConfig(max_iterations=5)).map
-    assert rotation_angle_deg(free.keyframes.T_wc[:, :3, :3], _drifted(_scene(noise_px=0.0), 0.2).keyframes.T_wc[:, :3, :3]).max() > 0.1
+    assert (
+        rotation_angle_deg(
+            free.keyframes.T_wc[:, :3, :3], _drifted(_scene(noise_px=0.0), 0.2).keyframes.T_wc[:, :3, :3]
+        ).max()
+        > 0.1
+    )

@@ -385,7 +385,12 @@ def _lm_stage(
 
 
 def _run(
-    m: Map, pb: Problem, config: BAConfig, progress: ProgressFn | None, t0: float, hold_rotations: bool = False
+    m: Map,
+    pb: Problem,
+    config: BAConfig,
+    progress: ProgressFn | None,
+    t0: float,
+    hold_rotations: bool = False,
 ) -> BAResult:
     g = _build_graph(m, pb, config, hold_rotations)
     setup_s = time.perf_counter() - t0

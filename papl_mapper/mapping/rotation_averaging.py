@@ -14,6 +14,7 @@ same observations is kept (maximum likelihood decides, not the check).
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -98,10 +99,11 @@ def covisible_pairs(m: Map, neighbours: int, min_shared: int) -> list[tuple[int,
 
 
 def relative_rotation(
-    uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, cfg: RotationCheckConfig
+    uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, cfg: RotationCheckConfig, seed: int = 0
 ) -> np.ndarray | None:
     """R_ba (camera a to camera b) from matched pixels by the essential matrix, or None where the pair
     is degenerate (too few inliers, or too few of them in front of both cameras: no baseline)."""
+    cv2.setRNGSeed(seed)  # OpenCV's generator is per thread: seeded per call, any thread gives one answer
     E, mask = find_essential(uv_a, uv_b, K, cv2.USAC_ACCURATE, cfg.ransac_threshold_px)
     need = cfg.min_inlier_ratio * len(uv_a)
     if E is None or mask is None or mask.sum() < need:
@@ -142,7 +144,8 @@ def average_rotations(
     (Huber), started from `R_init`; the first rotation is held (the gauge)."""
     graph = gtsam.NonlinearFactorGraph()
     noise = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(1.345), gtsam.noiseModel.Isotropic.Sigma(3, np.radians(sigma_deg))
+        gtsam.noiseModel.mEstimator.Huber.Create(1.345),
+        gtsam.noiseModel.Isotropic.Sigma(3, np.radians(sigma_deg)),
     )
     for a, b, R_ba in measurements:
         graph.add(gtsam.BetweenFactorRot3(a, b, gtsam.Rot3(R_ba.T), noise))
@@ -155,23 +158,29 @@ def average_rotations(
 
 
 def averaged_rotations(
-    m: Map, cfg: RotationCheckConfig
+    m: Map, cfg: RotationCheckConfig, seed: int = 0, workers: int = 2
 ) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
     """The map's keyframe rotations averaged from the pairwise rotations of covisible keyframes (those
-    no pair reaches keep their own), and those pairwise rotations (a, b, R_ba)."""
+    no pair reaches keep their own), and those pairwise rotations (a, b, R_ba); `workers` threads
+    estimate the pairs (OpenCV releases the GIL), the results kept in pair order."""
     T = m.keyframes.T_wc
     obs_kf = np.searchsorted(m.keyframes.ids, m.points.obs_ids[:, 1])
     order = np.argsort(obs_kf, kind="stable")
     bounds = np.searchsorted(obs_kf[order], np.arange(len(T) + 1))
-    measurements = []
-    for a, b in covisible_pairs(m, cfg.neighbours, cfg.min_shared):
-        rows_a, rows_b = (order[bounds[k] : bounds[k + 1]] for k in (a, b))
+    pairs = covisible_pairs(m, cfg.neighbours, cfg.min_shared)
+
+    def estimate(pair: tuple[int, int]) -> np.ndarray | None:
+        rows_a, rows_b = (order[bounds[k] : bounds[k + 1]] for k in pair)
         _, ia, ib = np.intersect1d(
-            m.points.obs_ids[rows_a, 0], m.points.obs_ids[rows_b, 0], assume_unique=False, return_indices=True
+            m.points.obs_ids[rows_a, 0], m.points.obs_ids[rows_b, 0], return_indices=True
         )
-        R_ba = relative_rotation(m.points.obs_uv[rows_a[ia]], m.points.obs_uv[rows_b[ib]], m.camera.K, cfg)
-        if R_ba is not None:
-            measurements.append((a, b, R_ba))
+        return relative_rotation(
+            m.points.obs_uv[rows_a[ia]], m.points.obs_uv[rows_b[ib]], m.camera.K, cfg, seed
+        )
+
+    with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="rotations") as pool:
+        rotations = list(pool.map(estimate, pairs))
+    measurements = [(a, b, R) for (a, b), R in zip(pairs, rotations, strict=True) if R is not None]
     if not measurements:
         return T[:, :3, :3].copy(), []
     return average_rotations(T[:, :3, :3], measurements, cfg.sigma_deg), measurements
@@ -231,7 +240,12 @@ def point_cost(m: Map, sigma_px: float, huber_k: float, max_error_px: float) -> 
 
 
 def rotation_checked(
-    m: Map, ba: BAConfig, cfg: RotationCheckConfig, max_error_px: float, progress: ProgressFn | None = None
+    m: Map,
+    ba: BAConfig,
+    cfg: RotationCheckConfig,
+    max_error_px: float,
+    progress: ProgressFn | None = None,
+    seed: int = 0,
 ) -> tuple[Map, RotationCheck]:
     """`m` (a map after its global BA) checked against its averaged rotations: where they disagree by more
     than `cfg.check_deg`, a global BA from the averaged rotations, and of the two the map whose point
@@ -240,7 +254,7 @@ def rotation_checked(
     if len(m.keyframes) < 3:
         return m, check
     R_ba = m.keyframes.T_wc[:, :3, :3]
-    R_avg, measurements = averaged_rotations(m, cfg)
+    R_avg, measurements = averaged_rotations(m, cfg, seed)
     check.pairs = len(measurements)
     if not measurements:
         return m, check
@@ -258,7 +272,9 @@ def rotation_checked(
         held = global_ba(with_rotations(m, R_avg), ba, progress, hold_rotations=True).map
         other = global_ba(held, ba, progress).map
     except (GeometryError, OptimizationError) as exc:
-        log.info("rotation check: the BA from averaged rotations failed (%s); the registration's start kept", exc)
+        log.info(
+            "rotation check: the BA from averaged rotations failed (%s); the registration's start kept", exc
+        )
         return m, check
     other.metadata = dict(m.metadata)
     check.cost_other = point_cost(other, ba.point_sigma_px, ba.huber_k, max_error_px)
