@@ -325,3 +325,18 @@ def test_max_reprojection_px_is_the_worst_view_and_inf_behind_a_camera():
     uv = np.array([[320.0, 240], [323, 244], [420, 240], [420, 240]])
     worst = g.max_reprojection_px(index, T_cw, K, uv, X)
     assert worst[0] == 5.0 and worst[1] == np.inf
+
+
+@pytest.mark.parametrize("t_deg", [0.0, 1e-9, 1e-5, 0.3, 45.0, 89.9999, 90.0, 135.0, 179.99])
+def test_line_angle_is_exact_at_any_angle_and_ignores_sign_and_length(t_deg: float) -> None:
+    """The undirected angle between two directions, exact down to zero (an arccos of the cosine
+    cannot resolve angles below about 1e-6 degrees)."""
+    from papl_mapper.geometry.lines import line_angle_deg
+
+    t = np.radians(t_deg)
+    a = np.array([1.0, 0.0, 0.0])
+    b = np.array([np.cos(t), np.sin(t), 0.0])
+    expected = min(t_deg, 180.0 - t_deg)
+    for aa, bb in ((a, b), (-a, b), (3.0 * a, 0.5 * b)):
+        assert line_angle_deg(aa, bb) == pytest.approx(expected, rel=1e-9, abs=1e-12)
+    assert line_angle_deg(np.stack([a, b]), b[None]).shape == (2,)

@@ -478,11 +478,13 @@ def line_distance(L_a: np.ndarray, L_b: np.ndarray) -> np.ndarray:
 
 
 def line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angles in degrees (0..90) between undirected unit directions a (..., 3) and b (..., 3), broadcasting.
+    """Angles in degrees (0..90) between undirected directions a (..., 3) and b (..., 3), broadcasting.
 
-    arccos of |a . b|: exact to about 1e-6 degrees (where the cosine runs out of digits), far below any
-    threshold or reported error; normalise a Pluecker line's direction `L[..., 3:]` first.
+    atan2(|a x b|, |a . b|): exact down to zero (arccos of the cosine runs out of digits near 1e-6
+    degrees, which machine-dependent rounding then shows); the lengths cancel, so a Pluecker line's
+    direction `L[..., 3:]` needs no normalising.
     """
     a = np.asarray(a, np.float64)
     b = np.asarray(b, np.float64)
-    return np.degrees(np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0)))
+    a, b = np.broadcast_arrays(a, b)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.abs(np.sum(a * b, axis=-1))))
