@@ -13,10 +13,10 @@ from papl_mapper.tracks import Tracks
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
 
 
-def _two_views(noise_px: float, seed: int = 0):
-    """Frame 0 (posed) and frame 1 a wide step away; 300 shared tracks, world = frame 0 scaled by 2."""
+def _two_views(noise_px: float, seed: int = 0, n: int = 300):
+    """Frame 0 (posed) and frame 1 a wide step away; n shared tracks, world = frame 0 scaled by 2."""
     rng = np.random.default_rng(seed)
-    X = np.column_stack([rng.uniform(-3, 3, 300), rng.uniform(-2, 2, 300), rng.uniform(4, 9, 300)])
+    X = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(-2, 2, n), rng.uniform(4, 9, n)])
     T0 = np.eye(4)
     T1 = np.eye(4)
     T1[:3, :3] = so3_exp(np.array([0.02, -0.25, 0.03]))
@@ -25,14 +25,14 @@ def _two_views(noise_px: float, seed: int = 0):
     for T in (T0, T1):
         Xc = X @ T[:3, :3].T + T[:3, 3]
         p = Xc @ CAM.K.T
-        uv.append(p[:, :2] / p[:, 2:3] + rng.normal(0, noise_px, (300, 2)))
+        uv.append(p[:, :2] / p[:, 2:3] + rng.normal(0, noise_px, (n, 2)))
     tracks = Tracks(
         CAM,
         np.arange(2),
         np.arange(2.0),
         np.ones(2, bool),
-        np.repeat([0, 1], 300),
-        np.tile(np.arange(300), 2),
+        np.repeat([0, 1], n),
+        np.tile(np.arange(n), 2),
         np.vstack(uv),
         np.zeros(0, np.int64),
         np.zeros(0, np.int64),
@@ -83,3 +83,18 @@ def test_two_disagreeing_scale_groups_are_refused_without_a_warning():
         warnings.simplefilter("error", RuntimeWarning)
         res = register_relative(tracks, 1, 0, np.eye(4), mapped, RelativePoseConfig(min_scale_points=2))
     assert not res.ok and "agree on the step length" in res.reason
+
+
+def test_a_pair_with_as_few_shared_tracks_as_a_verified_feature_pair_registers():
+    """30 shared tracks (a sparse photo set's neighbours share few): enough, as for a verified feature
+    pair (25 inliers); 20 are refused."""
+    tracks, X, T1 = _two_views(0.5, seed=3, n=30)
+    res = register_relative(tracks, 1, 0, np.eye(4), {i: X[i] for i in range(6)}, RelativePoseConfig())
+    assert res.ok, res.reason
+    assert rotation_angle_deg(res.T_cw[:3, :3], T1[:3, :3]) < 1.0  # 30 points at 0.5 px: BA refines it
+    c_est = -res.T_cw[:3, :3].T @ res.T_cw[:3, 3]
+    c_gt = -T1[:3, :3].T @ T1[:3, 3]
+    assert np.linalg.norm(c_est - c_gt) < 0.1 * np.linalg.norm(c_gt)
+    tracks, X, _ = _two_views(0.5, seed=3, n=20)
+    refused = register_relative(tracks, 1, 0, np.eye(4), {i: X[i] for i in range(6)}, RelativePoseConfig())
+    assert not refused.ok

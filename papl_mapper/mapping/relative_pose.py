@@ -29,8 +29,10 @@ class RelativePoseConfig:
 
     enabled: bool = True
     """Try it where PnP fails for lack of mapped points."""
-    min_matches: int = 40
-    """Fewest verified shared tracks with the keyframe (inliers of the essential matrix)."""
+    min_matches: int = 25
+    """Fewest verified shared tracks with the keyframe (inliers of the essential matrix): as many as a
+    feature pair needs to be verified (`FeatureConfig.min_inliers`); photos a few seconds apart may
+    share no more."""
     min_scale_points: int = 4
     """Fewest mapped points whose scales agree."""
     scale_tolerance: float = 0.15
