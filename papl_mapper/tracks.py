@@ -124,8 +124,13 @@ class PointRows:
 
     def rows(self, ids: np.ndarray) -> np.ndarray:
         """Rows (ascending) of every observation of the track ids `ids` (unique)."""
+        return np.sort(self.rows_by_id(ids)[0])
+
+    def rows_by_id(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of every observation of the track ids `ids` (repeats allowed), id by id, and for each
+        row the index in `ids` it belongs to."""
         ids = np.asarray(ids, np.int64)
         lo = np.searchsorted(self._sorted, ids, "left")
         n = np.searchsorted(self._sorted, ids, "right") - lo
         starts = np.repeat(lo - (np.cumsum(n) - n), n)
-        return np.sort(self._order[starts + np.arange(int(n.sum()))])
+        return self._order[starts + np.arange(int(n.sum()))], np.repeat(np.arange(len(ids)), n)

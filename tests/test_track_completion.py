@@ -117,3 +117,42 @@ def test_unmapped_tracks_are_triangulated_where_they_are(noise_px):
     assert not np.isin(bad, new).any()
     err = np.linalg.norm(np.stack([out[int(t)] for t in new]) - pts[new], axis=1)
     assert np.median(err) < (1e-9 if noise_px == 0 else 0.02)
+
+
+def test_the_one_pass_projection_screen_matches_the_test_pair_by_pair():
+    """`_projects_near` decides for every candidate pair at once what the completion loop's projection
+    test decides for one pair: point p in front of and near every keyframe observation of track b."""
+    from papl_mapper.geometry.se3 import project_points
+    from papl_mapper.mapping.track_completion import _candidates, _projects_near
+    from papl_mapper.tracks import PointRows
+
+    tracks, T_wc, pts = _scene(noise_px=0.5)
+    ids = np.unique(tracks.point_track)
+    cut = _cut(tracks, 20, ids[::2])
+    points_w = {int(t): pts[t] for t in ids}
+    points_w.update({int(t) + CUT: pts[t] + 0.3 for t in cut[::3]})  # some far off: they fail the test
+    m = _map(tracks, T_wc, points_w)
+    cfg = CompletionConfig()
+    T_kf = {int(k): T for k, T in zip(m.keyframes.ids, m.keyframes.T_wc, strict=True)}
+    pairs = _candidates(tracks, m, T_kf, cfg)
+    pairs.append((int(ids[0]), 10**9))  # a track with no observation at all: not near
+    rows_index = PointRows(tracks)
+    in_kf = np.isin(tracks.point_frame, m.keyframes.ids)
+    near = _projects_near(tracks, rows_index, in_kf, T_kf, points_w, pairs, cfg.max_error_px)
+    expected = []
+    for p, b in pairs:
+        rows = rows_index.rows(np.array([b]))
+        rows = rows[in_kf[rows]]
+        if len(rows) == 0 or p not in points_w:
+            expected.append(False)
+            continue
+        uv, z = project_points(
+            tracks.camera.K, np.stack([T_kf[int(f)] for f in tracks.point_frame[rows]]), points_w[p]
+        )
+        expected.append(
+            bool(
+                (z > 0).all() and np.linalg.norm(uv - tracks.point_uv[rows], axis=1).max() <= cfg.max_error_px
+            )
+        )
+    assert near.tolist() == expected
+    assert 0 < sum(expected) < len(expected)

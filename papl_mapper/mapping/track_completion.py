@@ -115,8 +115,11 @@ def complete_tracks(
         return frames_of[t]
 
     K = tracks.camera.K
-    for p, b in pairs:
+    near = _projects_near(tracks, rows_index, in_kf, T_wc, points_w, pairs, cfg.max_error_px)
+    for i, (p, b) in enumerate(pairs):
         if p in owner or b in owner or p not in points_w:
+            continue
+        if b not in members and not near[i]:  # screened in one pass while b is a track of its own
             continue
         if frames(b) & frames(p):  # one track twice in a frame: two different corners, not one point
             continue
@@ -143,6 +146,35 @@ def complete_tracks(
     if cfg.retriangulate:
         stats.retriangulated = _retriangulate(tracks, T_wc, in_kf, points_w, cfg)
     return points_w, stats
+
+
+def _projects_near(
+    tracks: Tracks,
+    rows_index: PointRows,
+    in_kf: np.ndarray,
+    T_wc: dict[int, np.ndarray],
+    points_w: dict[int, np.ndarray],
+    pairs: list[tuple[int, int]],
+    max_error_px: float,
+) -> np.ndarray:
+    """(len(pairs),) whether map point p projects in front of, and within `max_error_px` of, every
+    keyframe observation of track b (which has at least one): the completion loop's geometric test for
+    each pair at once, with the same arithmetic."""
+    if not pairs:
+        return np.zeros(0, bool)
+    p_ids = [p for p, _ in pairs]
+    X = np.array([points_w.get(p, np.zeros(3)) for p in p_ids])
+    rows, which = rows_index.rows_by_id(np.array([b for _, b in pairs], np.int64))
+    keep = in_kf[rows]
+    rows, which = rows[keep], which[keep]
+    frames = tracks.point_frame[rows]
+    kf = np.unique(frames)
+    T = np.stack([T_wc[int(f)] for f in kf]) if len(kf) else np.zeros((0, 4, 4))
+    uv, z = project_points(tracks.camera.K, T[np.searchsorted(kf, frames)], X[which])
+    bad = (z <= 0) | (np.linalg.norm(uv - tracks.point_uv[rows], axis=1) > max_error_px)
+    near = np.bincount(which, minlength=len(pairs)) > 0
+    near &= np.bincount(which, weights=bad, minlength=len(pairs)) == 0
+    return near
 
 
 def _candidates(
