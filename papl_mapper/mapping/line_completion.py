@@ -67,10 +67,11 @@ def segment_line_errors(K: np.ndarray, T_wc: np.ndarray, ends_w: np.ndarray, xy:
     u = ab / np.maximum(length, 1e-9)[:, None]
     n = np.stack([-u[:, 1], u[:, 0]], 1)  # (M, 2) unit normal of the image line
     p = xy.reshape(-1, 2, 2)  # (S, 2, 2)
-    rel = p[None] - a[:, None, None, :]  # (M, S, 2, 2)
-    dist = np.abs(np.einsum("msek,mk->mse", rel, n))
-    along = np.einsum("msek,mk->mse", rel, u)
-    lo, hi = along.min(axis=2), along.max(axis=2)
+    rx = p[None, :, :, 0] - a[:, None, None, 0]  # (M, S, 2) endpoint offsets from the image line's start
+    ry = p[None, :, :, 1] - a[:, None, None, 1]
+    dist = np.abs(rx * n[:, None, None, 0] + ry * n[:, None, None, 1])
+    along = rx * u[:, None, None, 0] + ry * u[:, None, None, 1]
+    lo, hi = np.minimum(along[..., 0], along[..., 1]), np.maximum(along[..., 0], along[..., 1])
     inside = np.clip(np.minimum(hi, length[:, None]) - np.maximum(lo, 0.0), 0.0, None)
     overlap = inside / np.maximum(hi - lo, 1e-9)
     ok = front & (length > 1.0)
@@ -202,15 +203,22 @@ def _descriptors_by_track(tracks: Tracks) -> dict[int, np.ndarray]:
 
 
 def _explains(K, m: Map, ends_w: np.ndarray, frames: np.ndarray, xy: np.ndarray, max_error_px: float) -> bool:
-    """Every keyframe observation (frames, xy) lies within max_error_px of the line's projection."""
+    """Every keyframe observation (frames, xy) lies within max_error_px of the line's projection (the
+    distances of `segment_line_errors`, all observations at once)."""
     if len(frames) == 0:
         return False
-    rows = np.searchsorted(m.keyframes.ids, frames)
-    for r, seg in zip(rows.tolist(), xy, strict=True):
-        dist, _ = segment_line_errors(K, m.keyframes.T_wc[r], ends_w[None], seg[None])
-        if not dist.max() <= max_error_px:
-            return False
-    return True
+    T = m.keyframes.T_wc[np.searchsorted(m.keyframes.ids, frames)]  # (N, 4, 4), one per observation
+    Xc = np.einsum("nej,nji->nei", ends_w[None] - T[:, None, :3, 3], T[:, :3, :3])  # (N, 2, 3)
+    if not (Xc[..., 2] > NEAR).all():
+        return False
+    uv = (Xc @ K.T)[..., :2] / Xc[..., 2:3]
+    ab = uv[:, 1] - uv[:, 0]
+    length = np.linalg.norm(ab, axis=1)
+    if not (length > 1.0).all():
+        return False
+    n = np.stack([-ab[:, 1], ab[:, 0]], 1) / length[:, None]  # unit normals of the image lines
+    dist = np.abs(np.einsum("nek,nk->ne", xy.reshape(-1, 2, 2) - uv[:, :1], n))
+    return bool(dist.max() <= max_error_px)
 
 
 def _descriptors_agree(
