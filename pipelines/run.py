@@ -1,6 +1,7 @@
 """`papl-map run`: one recording to one anchored line map, as a short recipe over the stages.
 
-frontend (tracks) -> keyframe registration with windowed BA -> points-only global BA -> track
+frontend (tracks) -> keyframe registration with windowed BA -> points-only global BA -> rotation
+check (a second BA from averaged rotations where the first one's miss the pairwise ones) -> track
 completion, merging and retriangulation, and the points BA again -> line triangulation (temporary-VP
 stage) -> upright rotation, axes and soft association -> full global BA over
 points, anchored and orthonormal lines -> axis update and a second BA -> every frame's pose.
