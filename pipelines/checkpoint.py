@@ -60,7 +60,10 @@ _UPSTREAM = {"input", "frontend", "hfov_deg"}
 _LATER_ONLY = {"output", "focal", "scale", "stray_line_margin"}
 _LINES_AND_AXES = {"lines", "axes", "variant", "lines_from_all_frames"}
 NOT_READ: dict[str, set[str]] = {
-    "registration": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES | {"cull", "completion", "max_line_error_px"},
+    "registration": _UPSTREAM
+    | _LATER_ONLY
+    | _LINES_AND_AXES
+    | {"cull", "rotations", "completion", "max_line_error_px"},
     "ba_points": _UPSTREAM | _LATER_ONLY | _LINES_AND_AXES,
     "ba_full": _UPSTREAM | _LATER_ONLY,
 }
