@@ -278,17 +278,20 @@ def rotation_checked(
         return m, check
     other.metadata = dict(m.metadata)
     check.cost_other = point_cost(other, ba.point_sigma_px, ba.huber_k, max_error_px)
+    better = check.cost_other < cost
     log.info(
-        "rotation check: keyframe rotations miss %d pairwise rotations by %.2f deg (median; averaged ones "
-        "%.2f deg, up to %.2f deg away); BA from the averaged rotations ends at cost %.6g against %.6g",
+        "rotation check: the keyframe rotations miss %d pairwise two-view rotations by %.2f deg (median; "
+        "their average by %.2f deg, up to %.2f deg from the BA's); the BA restarted from the averaged "
+        "rotations ends at cost %.6g against %.6g: %s",
         check.pairs,
         check.residual_ba_deg,
         check.residual_averaged_deg,
         check.max_disagreement_deg,
         check.cost_other,
         cost,
+        "kept" if better else "not kept",
     )
-    if check.cost_other < cost:
+    if better:
         check.kept, check.cost_kept, check.cost_other = "averaged", check.cost_other, cost
         return other, check
     return m, check
