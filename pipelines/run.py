@@ -435,7 +435,10 @@ def _points_ba(
         m, stats.ba_points = _ba(m, cfg, progress, "BA (points)")
     if cfg.rotations.enabled:
         with timer.stage("rotation_check"), progress("BA (points, averaged rotations)") as cb:
-            report = (lambda i, n, cost: cb(i, n, f"cost {cost:.6g}")) if cb is not None else None
+
+            def report(i: int, n: int, cost: float) -> None:
+                cb(i, n, f"cost {cost:.6g}")
+
             m, check = rotation_checked(m, cfg.ba, cfg.rotations, cfg.max_point_error_px, report, cfg.seed)
             stats.rotation_check = check.as_dict()
     if cfg.completion.enabled:

@@ -54,8 +54,9 @@ from papl_mapper.map import Map
 log = logging.getLogger(__name__)
 
 FIXED_POSE_NOISE = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
-HELD_ROTATION_NOISE = gtsam.noiseModel.Isotropic.Sigma(3, 1e-4)  # radians: 0.006 degrees
 """Poses held at their value: radians and map units, far below anything observable."""
+HELD_ROTATION_NOISE = gtsam.noiseModel.Isotropic.Sigma(3, 1e-4)
+"""Rotations held by `hold_rotations` (radians, 0.006 degrees): they stay, positions move freely."""
 
 ProgressFn = Callable[[int, int, float], None]
 """progress(iteration, max_iterations, cost) after every Levenberg-Marquardt iteration."""

@@ -486,5 +486,8 @@ def line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """
     a = np.asarray(a, np.float64)
     b = np.asarray(b, np.float64)
-    a, b = np.broadcast_arrays(a, b)
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.abs(np.sum(a * b, axis=-1))))
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]  # by components: np.cross and a norm cost 4x (hot in VPs)
+    dot = np.abs(a0 * b0 + a1 * b1 + a2 * b2)
+    cross = np.sqrt((a1 * b2 - a2 * b1) ** 2 + (a2 * b0 - a0 * b2) ** 2 + (a0 * b1 - a1 * b0) ** 2)
+    return np.degrees(np.arctan2(cross, dot))
