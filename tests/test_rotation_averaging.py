@@ -191,3 +191,16 @@ def test_a_ba_holding_rotations_moves_only_positions_and_points() -> None:
         ).max()
         > 0.1
     )
+
+
+def test_keyframes_no_pair_reaches_keep_their_rotations() -> None:
+    """A keyframe without pairs, and a group of pairs not connected to the first keyframe, stay where
+    they started (damped, not indeterminate)."""
+    R = np.array([so3_exp(np.array([0.0, 0.1 * i, 0.02 * i])) for i in range(6)])
+    noisy = np.array([so3_exp(np.radians([0.3, 0.0, 0.0])) @ r for r in R])
+    noisy[0] = R[0]
+    meas = [(0, 1, R[1].T @ R[0]), (1, 2, R[2].T @ R[1]), (3, 4, R[4].T @ R[3])]
+    out = average_rotations(noisy, meas, 0.1)
+    assert rotation_angle_deg(out[:3], R[:3]).max() < 1e-6  # the connected ones reach the truth
+    assert rotation_angle_deg(out[5], noisy[5]) < 1e-6  # no pair: unchanged
+    assert rotation_angle_deg(out[4].T @ out[3], R[4].T @ R[3]) < 1e-6  # their relative rotation fits
