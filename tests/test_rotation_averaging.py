@@ -204,3 +204,9 @@ def test_keyframes_no_pair_reaches_keep_their_rotations() -> None:
     assert rotation_angle_deg(out[:3], R[:3]).max() < 1e-6  # the connected ones reach the truth
     assert rotation_angle_deg(out[5], noisy[5]) < 1e-6  # no pair: unchanged
     assert rotation_angle_deg(out[4].T @ out[3], R[4].T @ R[3]) < 1e-6  # their relative rotation fits
+
+
+def test_no_second_start_when_the_ba_holds_the_poses() -> None:
+    m = _drifted(_scene(), 0.4)
+    out, check = rotation_checked(m, BAConfig(optimize_poses=False), RotationCheckConfig(), 4.0)
+    assert out is m and not check.second_start and check.pairs == 0

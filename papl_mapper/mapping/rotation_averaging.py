@@ -251,7 +251,7 @@ def rotation_checked(
     than `cfg.check_deg`, a global BA from the averaged rotations, and of the two the map whose point
     cost over the same observations (errors capped at `max_error_px`) is lower."""
     check = RotationCheck()
-    if len(m.keyframes) < 3:
+    if len(m.keyframes) < 3 or not ba.optimize_poses:  # poses held by the BA are the user's to keep
         return m, check
     R_ba = m.keyframes.T_wc[:, :3, :3]
     R_avg, measurements = averaged_rotations(m, cfg, seed)
