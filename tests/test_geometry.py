@@ -340,3 +340,14 @@ def test_line_angle_is_exact_at_any_angle_and_ignores_sign_and_length(t_deg: flo
     for aa, bb in ((a, b), (-a, b), (3.0 * a, 0.5 * b)):
         assert line_angle_deg(aa, bb) == pytest.approx(expected, rel=1e-9, abs=1e-12)
     assert line_angle_deg(np.stack([a, b]), b[None]).shape == (2,)
+
+
+def test_rotation_alignment_recovers_a_common_rotation():
+    from papl_mapper.geometry.se3 import rotation_alignment, rotation_angle_deg, so3_exp
+
+    rng = np.random.default_rng(4)
+    R_from = np.array([so3_exp(rng.normal(0, 1.0, 3)) for _ in range(20)])
+    G = so3_exp(np.array([0.3, -1.2, 0.7]))
+    R_to = np.array([so3_exp(rng.normal(0, 0.001, 3)) @ G @ R for R in R_from])  # 0.1 deg each
+    assert rotation_angle_deg(rotation_alignment(R_from, R_to), G) < 0.05
+    assert rotation_angle_deg(rotation_alignment(R_from, G @ R_from), G) < 1e-9

@@ -27,6 +27,7 @@ import numpy as np
 from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import ConfigError, InputError
 from papl_mapper.geometry.lines import line_angle_deg
+from papl_mapper.geometry.se3 import rotation_alignment
 from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.map import Map
 from papl_mapper.trajectory_io import Trajectory, read_tum
@@ -354,9 +355,7 @@ def orientation_alignment(T_est: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
     positions' Sim(3) would carry its rotation error, which is large about the direction of a
     short, nearly straight path. Orientations fix all three rotation angles at every pose.
     """
-    M = np.einsum("nij,nkj->ik", T_ref[:, :3, :3], T_est[:, :3, :3])  # sum R_ref R_est^T
-    u, _, vt = np.linalg.svd(M)
-    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
+    return rotation_alignment(T_est[:, :3, :3], T_ref[:, :3, :3])
 
 
 def _line_part(

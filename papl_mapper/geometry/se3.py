@@ -130,6 +130,14 @@ def kabsch_rotation(a: np.ndarray, b: np.ndarray, weights: np.ndarray | None = N
     return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
+def rotation_alignment(R_from: np.ndarray, R_to: np.ndarray) -> np.ndarray:
+    """The rotation G with R_to[i] ~ G R_from[i] over (N, 3, 3) rotations, in the least squares (the
+    chordal L2 mean of R_to R_from^T): Kabsch over the rotations' columns."""
+    return kabsch_rotation(
+        np.swapaxes(R_from, -1, -2).reshape(-1, 3), np.swapaxes(R_to, -1, -2).reshape(-1, 3)
+    )
+
+
 def ray_angles_deg(a: np.ndarray, b: np.ndarray, R: np.ndarray) -> np.ndarray:
     """(N,) angle (deg) between each unit ray b_i and R a_i."""
     return np.degrees(np.arccos(np.clip(np.sum(b * (a @ R.T), axis=1), -1.0, 1.0)))

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import gtsam
@@ -25,7 +25,7 @@ from scipy.sparse import coo_matrix
 from papl_mapper.backend import BAConfig, global_ba
 from papl_mapper.backend.ba import ProgressFn
 from papl_mapper.errors import GeometryError, OptimizationError
-from papl_mapper.geometry.se3 import project_points, rotation_angle_deg
+from papl_mapper.geometry.se3 import project_points, rotation_alignment, rotation_angle_deg
 from papl_mapper.geometry.triangulation import triangulate_points
 from papl_mapper.geometry.two_view import find_essential
 from papl_mapper.map import Map
@@ -195,20 +195,15 @@ def pair_residual_deg(R_wc: np.ndarray, measurements: list[tuple[int, int, np.nd
 
 def disagreement_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     """(N,) angle of each R_a[i] from R_b[i] after the common rotation G (R_a ~ G R_b) that fits best."""
-    M = np.einsum("nij,nkj->ik", R_a, R_b)  # sum R_a R_b^T
-    U, _, Vt = np.linalg.svd(M)
-    G = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return rotation_angle_deg(R_a, G @ R_b)
+    return rotation_angle_deg(R_a, rotation_alignment(R_b, R_a) @ R_b)
 
 
 def with_rotations(m: Map, R_wc: np.ndarray) -> Map:
     """A copy of `m` with the keyframe rotations `R_wc` (camera centres kept) and its points triangulated
     anew from those poses; a point the new poses cannot triangulate turns with its first keyframe."""
-    out = Map(m.camera, m.keyframes, m.points, m.lines, m.axes, dict(m.metadata))
     kf = m.keyframes
     T_new = kf.T_wc.copy()
     T_new[:, :3, :3] = R_wc
-    out.keyframes = type(kf)(kf.ids.copy(), kf.frame_index.copy(), kf.timestamp.copy(), T_new)
     pts = m.points
     kf_row = np.searchsorted(kf.ids, pts.obs_ids[:, 1])
     pt_row = np.searchsorted(pts.ids, pts.obs_ids[:, 0])
@@ -221,8 +216,9 @@ def with_rotations(m: Map, R_wc: np.ndarray) -> Map:
     turn = R_wc[k] @ np.swapaxes(kf.T_wc[k, :3, :3], 1, 2)
     C = kf.T_wc[k, :3, 3]
     X[turned] = C + np.einsum("nij,nj->ni", turn, pts.xyz[turned] - C)
-    out.points = type(pts)(pts.ids.copy(), X, pts.color.copy(), pts.obs_ids.copy(), pts.obs_uv.copy())
-    return out
+    return replace(
+        m, keyframes=replace(kf, T_wc=T_new), points=replace(pts, xyz=X), metadata=dict(m.metadata)
+    )
 
 
 def point_cost(m: Map, sigma_px: float, huber_k: float, max_error_px: float) -> float:
