@@ -48,9 +48,10 @@ class LineCompletionStats:
 
 
 def _project_segments(K: np.ndarray, T_wc: np.ndarray, ends_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (M, 2, 2) of the endpoints of 3D segments ends_w (M, 2, 3) seen from camera T_wc, and
-    whether both lie in front of it (M,); a segment not in front gets finite placeholder pixels."""
-    Xc = (ends_w - T_wc[:3, 3]) @ T_wc[:3, :3]  # (M, 2, 3)
+    """Pixels (M, 2, 2) of the endpoints of 3D segments ends_w (M, 2, 3) seen from camera T_wc (4, 4),
+    or from cameras T_wc (M, 4, 4) one per segment, and whether both lie in front (M,); a segment not
+    in front gets finite placeholder pixels."""
+    Xc = (ends_w - T_wc[..., None, :3, 3]) @ T_wc[..., :3, :3]  # (M, 2, 3)
     front = (Xc[..., 2] > NEAR).all(axis=1)
     z = np.where(front[:, None], Xc[..., 2], 1.0)
     return (Xc @ K.T)[..., :2] / z[..., None], front
@@ -208,10 +209,9 @@ def _explains(K, m: Map, ends_w: np.ndarray, frames: np.ndarray, xy: np.ndarray,
     if len(frames) == 0:
         return False
     T = m.keyframes.T_wc[np.searchsorted(m.keyframes.ids, frames)]  # (N, 4, 4), one per observation
-    Xc = np.einsum("nej,nji->nei", ends_w[None] - T[:, None, :3, 3], T[:, :3, :3])  # (N, 2, 3)
-    if not (Xc[..., 2] > NEAR).all():
+    uv, front = _project_segments(K, T, np.broadcast_to(ends_w, (len(T), 2, 3)))
+    if not front.all():
         return False
-    uv = (Xc @ K.T)[..., :2] / Xc[..., 2:3]
     ab = uv[:, 1] - uv[:, 0]
     length = np.linalg.norm(ab, axis=1)
     if not (length > 1.0).all():

@@ -125,11 +125,12 @@ def complete_tracks(
             continue
         all_rows = rows_index.rows(group(b))
         rows = all_rows[in_kf[all_rows]]
-        if len(rows) == 0:
-            continue
-        uv, z = project_points(K, np.stack([T_wc[int(f)] for f in tracks.point_frame[rows]]), points_w[p])
-        if (z <= 0).any() or np.linalg.norm(uv - tracks.point_uv[rows], axis=1).max() > cfg.max_error_px:
-            continue
+        if b in members:  # grown since the screen: its test again, over all its pieces
+            if len(rows) == 0:
+                continue
+            uv, z = project_points(K, np.stack([T_wc[int(f)] for f in tracks.point_frame[rows]]), points_w[p])
+            if (z <= 0).any() or np.linalg.norm(uv - tracks.point_uv[rows], axis=1).max() > cfg.max_error_px:
+                continue
         if not _descriptors_agree(tracks, rows_index, desc_of_row, group(p), group(b), len(rows), cfg):
             continue
         tracks.point_track[all_rows] = p
@@ -158,8 +159,8 @@ def _projects_near(
     max_error_px: float,
 ) -> np.ndarray:
     """(len(pairs),) whether map point p projects in front of, and within `max_error_px` of, every
-    keyframe observation of track b (which has at least one): the completion loop's geometric test for
-    each pair at once, with the same arithmetic."""
+    keyframe observation of track b (which has at least one): the geometric test of a join for every
+    pair at once; the completion loop repeats it only for a track that has grown since."""
     if not pairs:
         return np.zeros(0, bool)
     p_ids = [p for p, _ in pairs]
