@@ -251,3 +251,45 @@ def test_sequence_with_vertical_tracking():
     assert np.median(errs) < MAX_ERR_NOISY_DEG / 2
     assert np.max(errs) < MAX_ERR_NOISY_DEG * 2
     assert np.max(vert_errs) < MAX_ERR_NOISY_DEG
+
+
+def _tracker_frames(rng):
+    """A turning, nodding camera (pure rotation) seeing 200 far points and the scene's segments; the
+    first two frames show no vertical segment. Returns (R_cw per frame, tracker inputs per frame)."""
+    pts = rng.uniform([-20, -15, 30], [20, 15, 60], size=(200, 3))  # world points in front (yaw 0)
+    poses, frames = [], []
+    for i in range(10):
+        R_cw = _camera(3.0 * i, 6.0 + 2.0 * np.sin(i), 2.0)
+        dirs, counts = (MANHATTAN[1:], [40, 40]) if i < 2 else (MANHATTAN, [40, 40, 40])
+        segs = _segments(R_cw, dirs, counts, NOISE_PX, 10, rng)[0]
+        R0 = _camera(0.0, 6.0, 2.0)
+        x = (K @ (R_cw @ R0.T @ pts.T)).T  # the points rotate with the camera about its centre
+        poses.append(R_cw)
+        frames.append((segs, np.arange(200), x[:, :2] / x[:, 2:], i % 3 == 0))
+    return poses, frames
+
+
+@pytest.mark.parametrize("init_frames", [30, 5])
+def test_vanishing_tracker_vertical_from_a_later_frame(init_frames):
+    """Frames 0-1 show no vertical: the tracker's vertical comes from the earliest frame of the largest
+    agreeing group (frame 2), rotated back along the point tracks, and every frame from 2 on reports
+    the true vertical; a recording shorter than init_frames and one that starts the tracking midway
+    give the same result (the first frames' own verticals are found as they arrive)."""
+    from papl_mapper.frontend.vp_tracking import VanishingTracker, VPTrackingConfig
+
+    poses, frames = _tracker_frames(np.random.default_rng(21))
+    tracker = VanishingTracker(K, VPTrackingConfig(VPConfig(), init_frames=init_frames))
+    for segs, ids, uv, kf in frames:
+        tracker.add(segs, ids, uv, kf)
+    labels, dirs, vertical_vp = tracker.result()
+    assert tracker.vertical_source == "initialised"
+    for f in range(2, 10):
+        true_v = poses[f] @ MANHATTAN[0]
+        assert vertical_vp[f] >= 0
+        assert _errors(true_v[None], dirs[f, vertical_vp[f]][None])[0] < MAX_ERR_NOISY_DEG
+    reference = VanishingTracker(K, VPTrackingConfig(VPConfig(), init_frames=30))
+    for segs, ids, uv, kf in frames:
+        reference.add(segs, ids, uv, kf)
+    _, dirs_ref, vertical_ref = reference.result()
+    np.testing.assert_array_equal(vertical_vp, vertical_ref)
+    np.testing.assert_allclose(dirs, dirs_ref, atol=1e-12)

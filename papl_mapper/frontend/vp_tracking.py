@@ -65,6 +65,9 @@ class VanishingTracker:
         self.failures = 0  # frames without vanishing directions
         self.rotations = 0  # frames whose vertical prior was rotated by the point-track rotation
         self._pending: list[_FrameIn] = []  # frames waiting for the vertical's initialisation
+        # their chained rotations x_f = R_f0 x_0 (None once the chain broke) and own verticals (frame, v)
+        self._chain: list[np.ndarray | None] = []
+        self._found: list[tuple[int, np.ndarray]] = []
         self._started = False
         self._labels: list[np.ndarray] = []
         self._results: list[VPResult | None] = []
@@ -77,6 +80,7 @@ class VanishingTracker:
         if self._started:
             self._step(frame)
             return
+        self._observe_pending(frame)
         self._pending.append(frame)
         if len(self._pending) >= self.config.init_frames:
             self._start()
@@ -107,7 +111,7 @@ class VanishingTracker:
         self._started = True
         frames, self._pending = self._pending, []
         cfg = self.config
-        vertical = self._initial_vertical(frames)
+        vertical = self._initial_vertical()
         if vertical is not None:
             self.vertical_source = "initialised"
         else:  # no rotation chain (e.g. tracking broke at once): the frames' verticals averaged as they are
@@ -121,7 +125,25 @@ class VanishingTracker:
         for frame in frames:
             self._step(frame)
 
-    def _initial_vertical(self, frames: list[_FrameIn]) -> np.ndarray | None:
+    def _observe_pending(self, frame: _FrameIn) -> None:
+        """A frame waiting for the initialisation: its rotation from the first frame (chained point-track
+        rotations) and its own vertical (no prior), found as it arrives so that `_start` has only the
+        vote left (the frontend's worker thread does this beside the frames that follow)."""
+        f = len(self._pending)
+        R_f0 = np.eye(3) if f == 0 else self._chain[-1]
+        if f > 0 and R_f0 is not None:
+            R = self._rotation(self._pending[-1], frame)
+            R_f0 = None if R is None else R @ R_f0
+        self._chain.append(R_f0)
+        try:
+            res = estimate_frame(frame.segs, self.K, None, self.config.vp, self.seed)
+        except GeometryError:
+            return
+        if res.vertical_c is not None:
+            v = res.vertical_c
+            self._found.append((f, v if v[1] <= 0 else -v))  # up is -y for an upright camera
+
+    def _initial_vertical(self) -> np.ndarray | None:
         """The vertical of the first frame, from the first frames' own verticals (no prior).
 
         Single-frame verticals are either good (0.1-0.3 deg on the synthetic corridor) or far off, so
@@ -129,26 +151,11 @@ class VanishingTracker:
         is rotated back into the first frame by the chained point-track rotations (chaining all of
         them would add their drift). None when no frame shows a vertical or the chain is broken.
         """
-        cfg = self.config.vp
-        R_f0: np.ndarray | None = np.eye(3)  # x_f = R_f0 x_0
-        chain: list[np.ndarray | None] = []
-        found: list[tuple[int, np.ndarray]] = []
-        for f, frame in enumerate(frames):
-            if f > 0 and R_f0 is not None:
-                R = self._rotation(frames[f - 1], frame)
-                R_f0 = None if R is None else R @ R_f0
-            chain.append(R_f0)
-            try:
-                res = estimate_frame(frame.segs, self.K, None, cfg, self.seed)
-            except GeometryError:
-                continue
-            if res.vertical_c is not None:
-                v = res.vertical_c
-                found.append((f, v if v[1] <= 0 else -v))  # up is -y for an upright camera
+        found, chain = self._found, self._chain
         if not found:
             return None
         V = np.array([v for _, v in found])
-        agree = np.degrees(np.arccos(np.clip(np.abs(V @ V.T), 0, 1))) <= cfg.track_gate_deg
+        agree = np.degrees(np.arccos(np.clip(np.abs(V @ V.T), 0, 1))) <= self.config.vp.track_gate_deg
         group = np.flatnonzero(agree[int(np.argmax(agree.sum(axis=1)))])
         f, v = found[int(group[0])]
         if chain[f] is None:
