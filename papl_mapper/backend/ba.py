@@ -35,6 +35,7 @@ from papl_mapper.backend.factors import (
     X,
     axis_prior_factor,
     scale_prior_factor,
+    symbols,
 )
 from papl_mapper.backend.linebatch import KIND_FIXDIR, LineBatch
 from papl_mapper.backend.lm import LevenbergMarquardt
@@ -215,10 +216,12 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig, hold_rotations: bool = F
         gtsam.noiseModel.Isotropic.Sigma(2, config.point_sigma_px),
     )
     xyz = m.points.xyz
-    for j, row in enumerate(pb.pt_rows):
-        values.insert(P(j), xyz[row])
-    for j, kf, uv in zip(pb.pt_obs_pt, pb.pt_obs_kf, pb.pt_obs_uv, strict=True):
-        graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, noise, X(kf), P(j), cal))
+    for key, x in zip(symbols("p", np.arange(len(pb.pt_rows))), xyz[pb.pt_rows], strict=True):
+        values.insert(key, x)
+    factor, add = gtsam.GenericProjectionFactorCal3_S2, graph.add
+    x_keys, p_keys = symbols("x", pb.pt_obs_kf), symbols("p", pb.pt_obs_pt)
+    for uv, x_key, p_key in zip(pb.pt_obs_uv, x_keys, p_keys, strict=True):
+        add(factor(uv, noise, x_key, p_key, cal))
 
     # axes
     A = len(m.axes)

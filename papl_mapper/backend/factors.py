@@ -16,6 +16,12 @@ import numpy as np
 from papl_mapper import geometry as geo
 
 
+def symbols(c: str, index: np.ndarray) -> list[int]:
+    """gtsam.symbol(c, i) for every i of `index`, computed in one pass (a symbol key is the character in
+    the top byte and the index below it)."""
+    return ((ord(c) << 56) + np.asarray(index, np.int64)).tolist()
+
+
 def X(i: int) -> int:
     """Key of keyframe pose row i."""
     return gtsam.symbol("x", int(i))
