@@ -138,6 +138,10 @@ class RunConfig:
     merging, rotation check, line directions, focal check); no stage has a seed setting of its own."""
     local_ba_window: int = 15
     """Keyframes optimised by each windowed BA."""
+    local_ba_relative_error_tol: float = 1e-4
+    """The windowed BAs of registration stop when an iteration gains under this fraction of the cost: ten
+    times tighter than the global BA (`ba.relative_error_tol`). Their problems are small, and the drift a
+    window leaves unconverged is built on by every later frame's PnP, where no global BA undoes it."""
     stray_line_margin: float = 0.2
     """Lines reaching beyond the points' extent (1-99 percentiles) by this fraction of its diagonal are
     dropped after BA."""

@@ -332,7 +332,8 @@ def map_tracks(
     loaded = store.load("registration", functools.partial(ckpt.read_registration, tracks=tracks))
     if loaded is None:
         with timer.stage("registration"), progress("keyframes") as cb:
-            refine = WindowedRefiner(tracks, cfg.ba, cfg.local_ba_window, cfg.max_point_error_px)
+            local = dataclasses.replace(cfg.ba, relative_error_tol=cfg.local_ba_relative_error_tol)
+            refine = WindowedRefiner(tracks, local, cfg.local_ba_window, cfg.max_point_error_px)
             reg = register_keyframes(
                 tracks, cfg.mapping, cb, refine if cfg.mapping.refine_every > 0 else None, cfg.seed
             )

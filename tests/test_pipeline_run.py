@@ -174,3 +174,31 @@ def test_a_partial_map_is_warned_about(caplog):
     assert "camera file" in caplog.records[0].getMessage()
     assert "--camera" in caplog.records[1].getMessage()
     assert "frames 0-101 were mapped as separate tracking segments" in caplog.records[2].getMessage()
+
+
+def test_windowed_ba_runs_to_its_own_tolerance(tmp_path, monkeypatch):
+    """Registration's windowed BAs get `local_ba_relative_error_tol`, the global BAs keep
+    `ba.relative_error_tol` (both set here to values no default has)."""
+    import papl_mapper.pipelines.run as run_module
+
+    if not (TINY / "video.mp4").exists():
+        pytest.skip("samples/tiny is not there")
+    seen = {"local": set(), "global": set()}
+
+    class Recording(run_module.WindowedRefiner):
+        def __init__(self, tracks, ba, *args, **kwargs):
+            seen["local"].add(ba.relative_error_tol)
+            super().__init__(tracks, ba, *args, **kwargs)
+
+    real_adjust = run_module.adjust
+
+    def recording_adjust(m, config, *args, **kwargs):
+        seen["global"].add(config.relative_error_tol)
+        return real_adjust(m, config, *args, **kwargs)
+
+    monkeypatch.setattr(run_module, "WindowedRefiner", Recording)
+    monkeypatch.setattr(run_module, "adjust", recording_adjust)
+    args = ["-q", "run", str(TINY / "video.mp4"), "--camera", str(TINY / "camera.json")]
+    args += ["--out", str(tmp_path), "--set", "local_ba_relative_error_tol=3e-5"]
+    assert main(args + ["--set", "ba.relative_error_tol=2e-3"]) == 0
+    assert seen == {"local": {3e-5}, "global": {2e-3}}
