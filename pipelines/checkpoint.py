@@ -79,7 +79,17 @@ _REGISTRATION_FIELDS = {
     "revisits",
     "init_frames",
 }
-_REVISIT_FIELDS = {"frame", "T_cw", "pairs", "old_frame", "drift", "scale"}
+_REVISIT_FIELDS = {
+    "frame",
+    "T_cw",
+    "pairs",
+    "old_frame",
+    "drift",
+    "scale",
+    "path",
+    "angle_deg",
+    "tracked_T_cw",
+}
 
 T = TypeVar("T")
 
@@ -311,6 +321,11 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
         revisit_old_frame=np.array([r.old_frame for r in rv], np.int64),
         revisit_drift=np.array([r.drift for r in rv], np.float64),
         revisit_scale=np.array([r.scale for r in rv], np.float64),
+        revisit_path=np.array([r.path for r in rv], np.float64),
+        revisit_angle_deg=np.array([r.angle_deg for r in rv], np.float64),
+        revisit_tracked_T_cw=np.array(
+            [np.full((4, 4), np.nan) if r.tracked_T_cw is None else r.tracked_T_cw for r in rv], np.float64
+        ).reshape(-1, 4, 4),
         revisit_n_pairs=np.array([len(p) for p in pairs], np.int64),
         revisit_pairs=np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64),
         point_track=tracks.point_track,
@@ -337,6 +352,8 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
         return {int(i): v for i, v in zip(ids.tolist(), values, strict=True)}
 
     bounds = np.concatenate([[0], np.cumsum(a["revisit_n_pairs"])])
+    n_rv = len(a["revisit_frame"])
+    tracked = a.get("revisit_tracked_T_cw", np.full((n_rv, 4, 4), np.nan))
     revisits = [
         Revisit(
             frame=int(a["revisit_frame"][i]),
@@ -345,8 +362,11 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
             old_frame=int(a["revisit_old_frame"][i]),
             drift=float(a["revisit_drift"][i]),
             scale=float(a["revisit_scale"][i]),
+            path=float(a.get("revisit_path", np.full(n_rv, np.nan))[i]),
+            angle_deg=float(a.get("revisit_angle_deg", np.full(n_rv, np.nan))[i]),
+            tracked_T_cw=None if np.isnan(tracked[i]).any() else tracked[i],
         )
-        for i in range(len(a["revisit_frame"]))
+        for i in range(n_rv)
     ]
     reg = Registration(
         frames=a["frames"].tolist(),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from papl_mapper.map import Camera
-from papl_mapper.mapping.revisit import RevisitConfig, TrackIndex, close_loop, find_revisit
+from papl_mapper.mapping.revisit import RevisitConfig, RevisitGate, TrackIndex, close_loop, find_revisit
 from papl_mapper.tracks import Tracks
 
 LOOP = 120  # frames per loop (3 deg per frame)
@@ -37,15 +37,16 @@ def _true_T_cw(f: int) -> np.ndarray:
 
 
 def _drift(f: int) -> np.ndarray:
-    """World-frame drift of the map as tracked at frame f (none over the first half lap, then growing)."""
-    a = max(0, f - DRIFT_FROM) / LOOP
+    """World-frame drift of the map as tracked at frame f (none over the first half lap, then growing
+    up to the query, then steady: the keyframes after the query share its correction)."""
+    a = max(0, min(f, QUERY) - DRIFT_FROM) / LOOP
     D = np.eye(4)
     D[:3, :3] = _yaw(a * DRIFT_DEG_PER_LOOP)
     D[:3, 3] = a * DRIFT_M_PER_LOOP
     return D
 
 
-def _build(scramble: bool = False):
+def _build(scramble: bool = False, last_keyframe: int = QUERY):
     rng = np.random.default_rng(0)
     n = 800
     phi = rng.uniform(0, 2 * np.pi, n)
@@ -98,7 +99,7 @@ def _build(scramble: bool = False):
         point_desc_row=np.array(desc_rows, np.int64),
         point_desc=np.array(descs, np.uint8),
     )
-    kfs = list(range(0, QUERY + 1, KEYFRAME_EVERY))
+    kfs = list(range(0, last_keyframe + 1, KEYFRAME_EVERY))
     T_cw = {f: _true_T_cw(f) @ _drift(f) for f in kfs}
     # each point as mapped when it was first seen: in the drifted world of that frame
     points_w = {}
@@ -143,15 +144,68 @@ def test_revisit_found_with_true_correspondences_and_loop_closed():
     assert frames.min() < DRIFT_FROM and frames.max() > LOOP
 
 
+def test_points_the_revisit_keyframe_sees_move_with_it():
+    """Tracking goes on from the corrected keyframe: the points it sees keep their place in its camera
+    frame (up to the correction's scale), wherever along the loop they were first mapped."""
+    tracks, T_cw, points_w, _ = _build()
+    index = TrackIndex.build(tracks)
+    rv = find_revisit(tracks, points_w, T_cw, QUERY, index, RevisitConfig())
+    rv.pairs = rv.pairs[:20]  # fuse a few: the others stay the keyframe's own points
+    seen = np.unique(tracks.point_track[tracks.point_frame == QUERY])
+    seen = [int(t) for t in seen if int(t) in points_w and int(t) not in set(rv.pairs[:, 0].tolist())]
+    assert len(seen) > 20
+
+    def in_camera() -> np.ndarray:
+        X = np.stack([points_w[t] for t in seen])
+        return X @ T_cw[QUERY][:3, :3].T + T_cw[QUERY][:3, 3]
+
+    before = in_camera()
+    close_loop(tracks, points_w, T_cw, {}, rv, index)
+    np.testing.assert_allclose(in_camera(), rv.scale * before, atol=1e-9)
+
+
 def test_no_revisit_without_matching_descriptors():
     tracks, T_cw, points_w, _ = _build(scramble=True)
     assert find_revisit(tracks, points_w, T_cw, QUERY, TrackIndex.build(tracks), RevisitConfig()) is None
 
 
-def test_implausible_correction_is_refused():
-    tracks, T_cw, points_w, _ = _build()
-    cfg = RevisitConfig(max_drift=0.01)
-    assert find_revisit(tracks, points_w, T_cw, QUERY, TrackIndex.build(tracks), cfg) is None
+def _revisits_after_query(cfg: RevisitConfig, count: int = 3):
+    tracks, T_cw, points_w, _ = _build(last_keyframe=QUERY + KEYFRAME_EVERY * (count - 1))
+    index = TrackIndex.build(tracks)
+    frames = [QUERY + KEYFRAME_EVERY * i for i in range(count)]
+    return [find_revisit(tracks, points_w, T_cw, f, index, cfg) for f in frames]
+
+
+def test_large_correction_closes_only_when_consecutive_keyframes_agree():
+    cfg = RevisitConfig(max_drift=0.01, confirm_keyframes=2)  # the query's 0.5 m is "large" here
+    rvs = _revisits_after_query(cfg)
+    assert all(rv is not None and rv.drift > cfg.max_drift * rv.path for rv in rvs)
+    gate = RevisitGate(cfg)
+    assert [gate.admit(rv) for rv in rvs] == [False, False, True]
+    # the correction that closes the loop puts the keyframe where the truth is
+    R, t, s = rvs[-1].correction()
+    c = -rvs[-1].tracked_T_cw[:3, :3].T @ rvs[-1].tracked_T_cw[:3, 3]
+    T = _true_T_cw(rvs[-1].frame)
+    assert np.linalg.norm(s * R @ c + t - (-T[:3, :3].T @ T[:3, 3])) < MAX_POSE_ERR_AFTER_M
+    # a keyframe without a revisit breaks the streak
+    gate = RevisitGate(cfg)
+    assert [gate.admit(rv) for rv in (rvs[0], None, rvs[1], rvs[2])] == [False, False, False, False]
+    # refused outright when confirmation is off
+    off = RevisitGate(RevisitConfig(max_drift=0.01, confirm_keyframes=0))
+    assert not any(off.admit(rv) for rv in rvs)
+    # within max_drift a single keyframe closes the loop
+    assert RevisitGate(RevisitConfig()).admit(rvs[0])
+
+
+def test_disagreeing_large_corrections_are_refused():
+    """A look-alike place: the middle keyframe's old points put it 0.3 m elsewhere."""
+    cfg = RevisitConfig(max_drift=0.01, confirm_keyframes=2)
+    rvs = _revisits_after_query(cfg, count=4)
+    shifted = rvs[1].T_cw.copy()
+    shifted[:3, 3] -= shifted[:3, :3] @ np.array([0.3, 0.0, 0.0])  # the camera centre moves 0.3 m
+    rvs[1].T_cw = shifted
+    gate = RevisitGate(cfg)
+    assert [gate.admit(rv) for rv in rvs] == [False, False, False, False]
 
 
 def test_recent_tracks_are_not_a_revisit():

@@ -46,6 +46,7 @@ def adjust(
         "initial_cost": res.initial_cost,
         "final_cost": res.final_cost,
         "iterations": res.iterations,
+        "solves": res.n_solves,
         "converged": res.converged,
         "time_s": round(res.time_s, 3),
         "rms": {k: {"before": res.initial_rms_px.get(k), "after": v} for k, v in res.final_rms_px.items()},

@@ -23,7 +23,14 @@ from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions
 from papl_mapper.mapping.registration_lines import RegistrationLines, RegistrationLinesConfig
 from papl_mapper.mapping.relative_pose import RelativePoseConfig, register_relative
-from papl_mapper.mapping.revisit import Revisit, RevisitConfig, TrackIndex, close_loop, find_revisit
+from papl_mapper.mapping.revisit import (
+    Revisit,
+    RevisitConfig,
+    RevisitGate,
+    TrackIndex,
+    close_loop,
+    find_revisit,
+)
 from papl_mapper.mapping.rotation_only import RotationOnlyConfig, rotation_only_recording
 from papl_mapper.mapping.tracking import PnPConfig, PnPResult, pose_from_lines, track_pnp
 from papl_mapper.tracks import PointRows, Tracks
@@ -309,6 +316,7 @@ def _extend(
     use_lines = cfg.track_lines.enabled or cfg.pnp.from_lines.enabled
     lines = RegistrationLines(tracks, cfg.track_lines) if use_lines else None
     rows = PointRows(tracks)
+    gate = RevisitGate(cfg.revisit)
     f = f1
     for f in range(f1 + 1, len(tracks)):
         if f == f2:
@@ -348,7 +356,7 @@ def _extend(
             log.debug("keyframe %d: %s, %d new points", f, res.reason, added)
             if index is not None and tracks.is_keyframe[f]:
                 rv = find_revisit(tracks, reg.points_w, reg.T_cw, f, index, cfg.revisit, seed)
-                if rv is not None and close_loop(tracks, reg.points_w, reg.T_cw, reg.T_cw_frames, rv, index):
+                if gate.admit(rv) and close_loop(tracks, reg.points_w, reg.T_cw, reg.T_cw_frames, rv, index):
                     reg.revisits.append(rv)
                     rows = PointRows(tracks)  # the loop renamed tracks
                     last_T = reg.T_cw[f]

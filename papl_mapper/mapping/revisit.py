@@ -5,7 +5,9 @@ The keyframe's ORB descriptors are matched to those of map points whose tracks e
 mutual best), and PnP with RANSAC on the old 3D points verifies the match geometrically.
 Closing the loop spreads the drift (the Sim(3) between the tracked pose and the pose from the
 old points) over the frames since the old visit, then fuses each matched track into the old one,
-so later PnP, triangulation and bundle adjustment see one 3D point per place.
+so later PnP, triangulation and bundle adjustment see one 3D point per place. `RevisitGate` decides
+which verified revisits close a loop: a small correction at once, a large one (scale lost in a turn)
+only when consecutive keyframes find the same correction, as ORB-SLAM asks of its loop candidates.
 """
 
 from __future__ import annotations
@@ -44,9 +46,17 @@ class RevisitConfig:
     so look-alike places elsewhere (repeated doors, windows) cannot match."""
     max_drift: float = 0.05
     """Largest distance between the tracked and the revisit camera centre, as a fraction of the path
-    walked since the old visit: a larger jump is a look-alike place, not drift."""
+    walked since the old visit, that one keyframe's revisit corrects by itself."""
     max_drift_deg: float = 20.0
     """Largest rotation between the tracked and the revisit pose."""
+    confirm_keyframes: int = 2
+    """A larger correction needs this many consecutive keyframes before it whose revisits agree with
+    it: drift moves consecutive keyframes alike, a look-alike place does not (0: refuse it)."""
+    agree_fraction: float = 0.15
+    """Consecutive corrections agree when each moves the other's camera centre to within this
+    fraction of the correction of its own revisit pose."""
+    agree_deg: float = 1.5
+    """... and their rotations are within this angle."""
 
 
 @dataclass
@@ -59,6 +69,16 @@ class Revisit:
     old_frame: int
     drift: float = float("nan")  # camera-centre correction, in map units
     scale: float = 1.0  # scale correction at the frame
+    path: float = float("nan")  # keyframe path walked since the old visit, in map units
+    angle_deg: float = float("nan")  # rotation between the tracked and the revisit pose
+    tracked_T_cw: np.ndarray | None = None  # the pose as tracked, before the correction
+
+    def correction(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """The world Sim(3) x -> s R x + t taking the map as tracked to the map the old points see."""
+        T_wc_loop = np.linalg.inv(self.T_cw)
+        R = T_wc_loop[:3, :3] @ self.tracked_T_cw[:3, :3]
+        t = self.scale * T_wc_loop[:3, :3] @ self.tracked_T_cw[:3, 3] + T_wc_loop[:3, 3]
+        return R, t, self.scale
 
 
 @dataclass
@@ -139,22 +159,79 @@ def find_revisit(
     qi, oi = qi[res.inliers], oi[res.inliers]
     old_frame = int(np.median([index.last[int(t)] for t in old_ids[oi]]))
     tracked = T_cw[frame]
-    drift = float(np.linalg.norm(_centre(res.T_cw) - _centre(tracked)))
-    path = _path_length(T_cw, old_frame, frame)
-    angle = _angle_deg(res.T_cw[:3, :3] @ tracked[:3, :3].T)
-    if drift > cfg.max_drift * path or angle > cfg.max_drift_deg:
-        log.info(
-            "frame %d: %d matches to frame %d rejected: correction %.3f over a path of %.3f, %.1f deg",
-            frame,
-            len(qi),
-            old_frame,
-            drift,
-            path,
-            angle,
-        )
-        return None
     new_old = np.stack([q_ids[qi], old_ids[oi]], axis=1).astype(np.int64)
-    return Revisit(frame, res.T_cw, new_old, old_frame, drift)
+    rv = Revisit(
+        frame,
+        res.T_cw,
+        new_old,
+        old_frame,
+        drift=float(np.linalg.norm(_centre(res.T_cw) - _centre(tracked))),
+        path=_path_length(T_cw, old_frame, frame),
+        angle_deg=_angle_deg(res.T_cw[:3, :3] @ tracked[:3, :3].T),
+        tracked_T_cw=tracked.copy(),
+    )
+    rv.scale = _scale_correction(rv, points_w, tracked)
+    return rv
+
+
+class RevisitGate:
+    """Which verified revisits close a loop, keyframe after keyframe of one registration segment.
+
+    A correction within `max_drift` of the path since the old visit closes the loop at once. A larger
+    one is drift only if it is consistent: it closes the loop when the revisits of the
+    `confirm_keyframes` keyframes just before it found corrections that agree with it (a turn that
+    lost the scale moves every later keyframe alike; a look-alike place matched by chance does not).
+    """
+
+    def __init__(self, cfg: RevisitConfig) -> None:
+        self.cfg = cfg
+        self._streak: list[Revisit] = []  # large corrections at consecutive keyframes, oldest first
+
+    def admit(self, rv: Revisit | None) -> bool:
+        """Whether `rv` (the revisit found at the next keyframe, None if none was) closes a loop."""
+        cfg = self.cfg
+        if rv is None or rv.angle_deg > cfg.max_drift_deg:
+            self._streak.clear()
+            return False
+        if rv.drift <= cfg.max_drift * rv.path:
+            self._streak.clear()
+            return True
+        if self._streak and not _agree(self._streak[-1], rv, cfg):
+            self._streak.clear()
+        self._streak.append(rv)
+        if cfg.confirm_keyframes > 0 and len(self._streak) > cfg.confirm_keyframes:
+            log.info(
+                "frame %d: correction %.3f over a path of %.3f (%.1f deg, scale %.3f), %d keyframes agree",
+                rv.frame,
+                rv.drift,
+                rv.path,
+                rv.angle_deg,
+                rv.scale,
+                len(self._streak) - 1,
+            )
+            self._streak.clear()
+            return True
+        log.info(
+            "frame %d: %d matches to frame %d held: correction %.3f over a path of %.3f, %.1f deg",
+            rv.frame,
+            len(rv.pairs),
+            rv.old_frame,
+            rv.drift,
+            rv.path,
+            rv.angle_deg,
+        )
+        return False
+
+
+def _agree(a: Revisit, b: Revisit, cfg: RevisitConfig) -> bool:
+    """Whether two revisits' corrections agree: each puts the other's tracked camera centre where the
+    other's old points do, to within `agree_fraction` of that correction, and their rotations agree."""
+    (Ra, ta, sa), (Rb, tb, sb) = a.correction(), b.correction()
+    for (R, t, s), other in (((Ra, ta, sa), b), ((Rb, tb, sb), a)):
+        moved = s * R @ _centre(other.tracked_T_cw) + t
+        if np.linalg.norm(moved - _centre(other.T_cw)) > cfg.agree_fraction * other.drift:
+            return False
+    return _angle_deg(Ra @ Rb.T) <= cfg.agree_deg
 
 
 def close_loop(
@@ -174,11 +251,10 @@ def close_loop(
     is renamed in place (the later track continues the old one, as the frontend's re-association does).
     """
     f, f0 = revisit.frame, revisit.old_frame
-    scale = _scale_correction(revisit, points_w, T_cw[f])
-    revisit.scale = scale
-    T_wc_loop = np.linalg.inv(revisit.T_cw)
-    R = T_wc_loop[:3, :3] @ T_cw[f][:3, :3]
-    t = scale * T_wc_loop[:3, :3] @ T_cw[f][:3, 3] + T_wc_loop[:3, 3]
+    if revisit.tracked_T_cw is None:
+        revisit.tracked_T_cw = T_cw[f].copy()
+        revisit.scale = _scale_correction(revisit, points_w, T_cw[f])
+    R, t, scale = revisit.correction()
     rotvec = so3_log(R)
 
     def part(g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -191,7 +267,7 @@ def close_loop(
         if len(later):
             moved = similarity_T_cw(np.stack([poses[int(g)] for g in later]), *part(later))
             poses.update(zip(later.tolist(), moved, strict=True))
-    born = _first_keyframe(tracks, points_w, T_cw)
+    born = _last_keyframe(tracks, points_w, T_cw)
     tids = np.array([tid for tid, g in born.items() if g > f0], np.int64)
     if len(tids):
         Ra, ta, sa = part(np.array([born[int(tid)] for tid in tids], np.int64))
@@ -244,16 +320,16 @@ def _scale_correction(revisit: Revisit, points_w: dict[int, np.ndarray], T_cw_no
     return float(np.median(d_old[ok] / d_new[ok])) if ok.sum() >= 8 else 1.0
 
 
-def _first_keyframe(
+def _last_keyframe(
     tracks: Tracks, points_w: dict[int, np.ndarray], T_cw: dict[int, np.ndarray]
 ) -> dict[int, int]:
-    """The first keyframe that observes each mapped point."""
+    """The last keyframe that observes each mapped point."""
     sel = np.isin(tracks.point_frame, np.fromiter(T_cw, np.int64, len(T_cw)))
     sel &= np.isin(tracks.point_track, np.fromiter(points_w, np.int64, len(points_w)))
     uniq, inv = np.unique(tracks.point_track[sel], return_inverse=True)
-    first = np.full(len(uniq), np.iinfo(np.int64).max)
-    np.minimum.at(first, inv, tracks.point_frame[sel])
-    return dict(zip(uniq.tolist(), first.tolist(), strict=True))
+    last = np.full(len(uniq), -1)
+    np.maximum.at(last, inv, tracks.point_frame[sel])
+    return dict(zip(uniq.tolist(), last.tolist(), strict=True))
 
 
 def _centre(T_cw: np.ndarray) -> np.ndarray:
