@@ -267,7 +267,7 @@ def close_loop(
         if len(later):
             moved = similarity_T_cw(np.stack([poses[int(g)] for g in later]), *part(later))
             poses.update(zip(later.tolist(), moved, strict=True))
-    born = _last_keyframe(tracks, points_w, T_cw)
+    born = _first_keyframe(tracks, points_w, T_cw)
     tids = np.array([tid for tid, g in born.items() if g > f0], np.int64)
     if len(tids):
         Ra, ta, sa = part(np.array([born[int(tid)] for tid in tids], np.int64))
@@ -320,16 +320,16 @@ def _scale_correction(revisit: Revisit, points_w: dict[int, np.ndarray], T_cw_no
     return float(np.median(d_old[ok] / d_new[ok])) if ok.sum() >= 8 else 1.0
 
 
-def _last_keyframe(
+def _first_keyframe(
     tracks: Tracks, points_w: dict[int, np.ndarray], T_cw: dict[int, np.ndarray]
 ) -> dict[int, int]:
-    """The last keyframe that observes each mapped point."""
+    """The first keyframe that observes each mapped point."""
     sel = np.isin(tracks.point_frame, np.fromiter(T_cw, np.int64, len(T_cw)))
     sel &= np.isin(tracks.point_track, np.fromiter(points_w, np.int64, len(points_w)))
     uniq, inv = np.unique(tracks.point_track[sel], return_inverse=True)
-    last = np.full(len(uniq), -1)
-    np.maximum.at(last, inv, tracks.point_frame[sel])
-    return dict(zip(uniq.tolist(), last.tolist(), strict=True))
+    first = np.full(len(uniq), np.iinfo(np.int64).max)
+    np.minimum.at(first, inv, tracks.point_frame[sel])
+    return dict(zip(uniq.tolist(), first.tolist(), strict=True))
 
 
 def _centre(T_cw: np.ndarray) -> np.ndarray:
