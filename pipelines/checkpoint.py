@@ -87,6 +87,7 @@ _REVISIT_FIELDS = {
     "drift",
     "scale",
     "path",
+    "old_parallax_deg",
     "angle_deg",
     "tracked_T_cw",
 }
@@ -322,6 +323,7 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
         revisit_drift=np.array([r.drift for r in rv], np.float64),
         revisit_scale=np.array([r.scale for r in rv], np.float64),
         revisit_path=np.array([r.path for r in rv], np.float64),
+        revisit_old_parallax_deg=np.array([r.old_parallax_deg for r in rv], np.float64),
         revisit_angle_deg=np.array([r.angle_deg for r in rv], np.float64),
         revisit_tracked_T_cw=np.array(
             [np.full((4, 4), np.nan) if r.tracked_T_cw is None else r.tracked_T_cw for r in rv], np.float64
@@ -363,6 +365,7 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
             drift=float(a["revisit_drift"][i]),
             scale=float(a["revisit_scale"][i]),
             path=float(a.get("revisit_path", np.full(n_rv, np.nan))[i]),
+            old_parallax_deg=float(a.get("revisit_old_parallax_deg", np.full(n_rv, np.nan))[i]),
             angle_deg=float(a.get("revisit_angle_deg", np.full(n_rv, np.nan))[i]),
             tracked_T_cw=None if np.isnan(tracked[i]).any() else tracked[i],
         )

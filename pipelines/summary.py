@@ -122,6 +122,10 @@ def revisit_row(rv: Revisit) -> dict[str, Any]:
         "tracks_fused": len(rv.pairs),
         "correction": round(rv.drift, 4),
         "scale": round(rv.scale, 4),
+        "path": round(rv.path, 4) if np.isfinite(rv.path) else None,
+        "old_points_parallax_deg": round(rv.old_parallax_deg, 2)
+        if np.isfinite(rv.old_parallax_deg)
+        else None,
     }
 
 

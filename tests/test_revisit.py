@@ -149,11 +149,13 @@ def test_no_revisit_without_matching_descriptors():
     assert find_revisit(tracks, points_w, T_cw, QUERY, TrackIndex.build(tracks), RevisitConfig()) is None
 
 
-def _revisits_after_query(cfg: RevisitConfig, count: int = 3):
+def _revisits_after_query(cfg: RevisitConfig, count: int = 3, parallax_deg: float = 10.0):
+    """Revisits at `count` consecutive keyframes from the query; old points triangulated at `parallax_deg`."""
     tracks, T_cw, points_w, _ = _build(last_keyframe=QUERY + KEYFRAME_EVERY * (count - 1))
     index = TrackIndex.build(tracks)
     frames = [QUERY + KEYFRAME_EVERY * i for i in range(count)]
-    return [find_revisit(tracks, points_w, T_cw, f, index, cfg) for f in frames]
+    angles = dict.fromkeys(points_w, parallax_deg)
+    return [find_revisit(tracks, points_w, T_cw, f, index, cfg, 0, angles) for f in frames]
 
 
 def test_large_correction_closes_only_when_consecutive_keyframes_agree():
@@ -174,6 +176,17 @@ def test_large_correction_closes_only_when_consecutive_keyframes_agree():
     off = RevisitGate(RevisitConfig(max_drift=0.01, confirm_keyframes=0))
     assert not any(off.admit(rv) for rv in rvs)
     # within max_drift a single keyframe closes the loop
+    assert RevisitGate(RevisitConfig()).admit(rvs[0])
+
+
+def test_large_correction_from_starved_old_points_is_refused():
+    """Old points triangulated at a turn's starved parallax: agreeing corrections are not enough."""
+    cfg = RevisitConfig(max_drift=0.01, confirm_keyframes=2)
+    rvs = _revisits_after_query(cfg, parallax_deg=0.6)
+    assert all(rv is not None and rv.old_parallax_deg == 0.6 for rv in rvs)
+    gate = RevisitGate(cfg)
+    assert [gate.admit(rv) for rv in rvs] == [False, False, False]
+    # a small correction does not depend on them
     assert RevisitGate(RevisitConfig()).admit(rvs[0])
 
 

@@ -355,7 +355,9 @@ def _extend(
             added = _triangulate_new(tracks, rows, reg, f, cfg)
             log.debug("keyframe %d: %s, %d new points", f, res.reason, added)
             if index is not None and tracks.is_keyframe[f]:
-                rv = find_revisit(tracks, reg.points_w, reg.T_cw, f, index, cfg.revisit, seed)
+                rv = find_revisit(
+                    tracks, reg.points_w, reg.T_cw, f, index, cfg.revisit, seed, reg.point_angle
+                )
                 if gate.admit(rv) and close_loop(tracks, reg.points_w, reg.T_cw, reg.T_cw_frames, rv, index):
                     reg.revisits.append(rv)
                     rows = PointRows(tracks)  # the loop renamed tracks

@@ -57,6 +57,10 @@ class RevisitConfig:
     fraction of the correction of its own revisit pose."""
     agree_deg: float = 1.5
     """... and their rotations are within this angle."""
+    large_min_parallax_deg: float = 2.0
+    """A larger correction also needs its old points triangulated from at least this ray angle (median;
+    registration's `min_parallax_deg`): far points mapped at the starved parallax of a turn in place put
+    the camera's position wrong by as much as such a correction, and always by the same amount."""
 
 
 @dataclass
@@ -70,6 +74,7 @@ class Revisit:
     drift: float = float("nan")  # camera-centre correction, in map units
     scale: float = 1.0  # scale correction at the frame
     path: float = float("nan")  # keyframe path walked since the old visit, in map units
+    old_parallax_deg: float = float("nan")  # median triangulation angle of the matched old points
     angle_deg: float = float("nan")  # rotation between the tracked and the revisit pose
     tracked_T_cw: np.ndarray | None = None  # the pose as tracked, before the correction
 
@@ -117,9 +122,10 @@ def find_revisit(
     index: TrackIndex,
     cfg: RevisitConfig,
     seed: int = 0,
+    point_angle: dict[int, float] | None = None,
 ) -> Revisit | None:
     """The revisit seen by keyframe `frame` (its pose `T_cw[frame]` as tracked), or None; `seed` seeds
-    the verifying PnP's RANSAC."""
+    the verifying PnP's RANSAC; `point_angle` the map points' triangulation angles (degrees)."""
     here = tracks.point_frame[tracks.point_desc_row] == frame
     rows = tracks.point_desc_row[here]
     if len(rows) < cfg.min_inliers:
@@ -170,6 +176,8 @@ def find_revisit(
         angle_deg=_angle_deg(res.T_cw[:3, :3] @ tracked[:3, :3].T),
         tracked_T_cw=tracked.copy(),
     )
+    if point_angle is not None:
+        rv.old_parallax_deg = float(np.median([point_angle.get(int(t), 0.0) for t in old_ids[oi]]))
     rv.scale = _scale_correction(rv, points_w, tracked)
     return rv
 
@@ -178,9 +186,10 @@ class RevisitGate:
     """Which verified revisits close a loop, keyframe after keyframe of one registration segment.
 
     A correction within `max_drift` of the path since the old visit closes the loop at once. A larger
-    one is drift only if it is consistent: it closes the loop when the revisits of the
-    `confirm_keyframes` keyframes just before it found corrections that agree with it (a turn that
-    lost the scale moves every later keyframe alike; a look-alike place matched by chance does not).
+    one is drift only if it is consistent and measured from well-triangulated old points: it closes the
+    loop when the revisits of the `confirm_keyframes` keyframes just before it found corrections that
+    agree with it (drift moves every later keyframe alike; a look-alike place matched by chance does
+    not) and its old points span `large_min_parallax_deg` (NaN, unknown, counts as too little).
     """
 
     def __init__(self, cfg: RevisitConfig) -> None:
@@ -196,6 +205,16 @@ class RevisitGate:
         if rv.drift <= cfg.max_drift * rv.path:
             self._streak.clear()
             return True
+        if not rv.old_parallax_deg >= cfg.large_min_parallax_deg:
+            log.info(
+                "frame %d: correction %.3f over a path of %.3f refused: its old points span %.2f deg",
+                rv.frame,
+                rv.drift,
+                rv.path,
+                rv.old_parallax_deg,
+            )
+            self._streak.clear()
+            return False
         if self._streak and not _agree(self._streak[-1], rv, cfg):
             self._streak.clear()
         self._streak.append(rv)
@@ -276,12 +295,14 @@ def close_loop(
         points_w.update(zip(tids.tolist(), moved, strict=True))
     fused = _fuse(tracks, points_w, revisit.pairs, index)
     log.info(
-        "revisit at frame %d of frame %d: %d tracks fused, drift %.3f (map units), scale %.3f",
+        "revisit at frame %d of frame %d: %d tracks fused, drift %.3f (map units), scale %.3f, old points' "
+        "parallax %.2f deg",
         f,
         f0,
         fused,
         revisit.drift,
         scale,
+        revisit.old_parallax_deg,
     )
     return fused
 
