@@ -57,16 +57,21 @@ def _project_segments(K: np.ndarray, T_wc: np.ndarray, ends_w: np.ndarray) -> tu
     return (Xc @ K.T)[..., :2] / z[..., None], front
 
 
+def _image_lines(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Start, unit direction, unit normal (..., 2) and length (...) of projected segments uv (..., 2, 2)."""
+    a = uv[..., 0, :]
+    ab = uv[..., 1, :] - a
+    length = np.linalg.norm(ab, axis=-1)
+    u = ab / np.maximum(length, 1e-9)[..., None]
+    return a, u, np.stack([-u[..., 1], u[..., 0]], -1), length
+
+
 def segment_line_errors(K: np.ndarray, T_wc: np.ndarray, ends_w: np.ndarray, xy: np.ndarray):
     """Pixel distances (M, S, 2) of the endpoints of segments xy (S, 4) to the image lines of 3D
     segments ends_w (M, 2, 3) seen from camera T_wc, and the overlap (M, S) of each segment with the
     projected segment over the segment's own length; inf / 0 where a 3D endpoint is behind the camera."""
     uv, front = _project_segments(K, T_wc, ends_w)
-    a, b = uv[:, 0], uv[:, 1]
-    ab = b - a
-    length = np.linalg.norm(ab, axis=1)
-    u = ab / np.maximum(length, 1e-9)[:, None]
-    n = np.stack([-u[:, 1], u[:, 0]], 1)  # (M, 2) unit normal of the image line
+    a, u, n, length = _image_lines(uv)
     p = xy.reshape(-1, 2, 2)  # (S, 2, 2)
     rx = p[None, :, :, 0] - a[:, None, None, 0]  # (M, S, 2) endpoint offsets from the image line's start
     ry = p[None, :, :, 1] - a[:, None, None, 1]
@@ -212,12 +217,10 @@ def _explains(K, m: Map, ends_w: np.ndarray, frames: np.ndarray, xy: np.ndarray,
     uv, front = _project_segments(K, T, np.broadcast_to(ends_w, (len(T), 2, 3)))
     if not front.all():
         return False
-    ab = uv[:, 1] - uv[:, 0]
-    length = np.linalg.norm(ab, axis=1)
+    a, _, n, length = _image_lines(uv)
     if not (length > 1.0).all():
         return False
-    n = np.stack([-ab[:, 1], ab[:, 0]], 1) / length[:, None]  # unit normals of the image lines
-    dist = np.abs(np.einsum("nek,nk->ne", xy.reshape(-1, 2, 2) - uv[:, :1], n))
+    dist = np.abs(np.einsum("nek,nk->ne", xy.reshape(-1, 2, 2) - a[:, None], n))
     return bool(dist.max() <= max_error_px)
 
 
