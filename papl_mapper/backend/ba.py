@@ -34,7 +34,6 @@ from papl_mapper.backend.factors import (
     W,
     X,
     axis_prior_factor,
-    huber_cost_residual,
     scale_prior_factor,
     symbols,
 )
@@ -514,17 +513,6 @@ def _write_back(m: Map, pb: Problem, st: _State, config: BAConfig | None = None)
                 ) + int(flat.sum())
                 e0 = m.lines.endpoints_w[grp.rows[flat]]
                 L[flat] = geo.normalize_plucker(geo.plucker_from_endpoints(e0[:, 0], e0[:, 1]))
-        if kind == KIND_ORTHO:
-            worse = _fits_worse_than_input(m, grp, L, owner, st.T[grp.obs_kf], config) & ~bad & ~flat
-            if worse.any():
-                log.info(
-                    "BA: %d orthonormal lines fit worse than before BA; kept as they were", int(worse.sum())
-                )
-                pb.dropped["lines_worse_after_ba"] = pb.dropped.get("lines_worse_after_ba", 0) + int(
-                    worse.sum()
-                )
-                e0 = m.lines.endpoints_w[grp.rows[worse]]
-                L[worse] = geo.normalize_plucker(geo.plucker_from_endpoints(e0[:, 0], e0[:, 1]))
         ends, ok = geo.clip_to_observations(L, owner, st.T[grp.obs_kf], K, grp.obs_xy, len(grp))
         # a single usable endpoint ray gives a zero-length segment, which has no direction: old extent too
         ok &= np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) > 1e-9 * scale
@@ -545,25 +533,6 @@ def _write_back(m: Map, pb: Problem, st: _State, config: BAConfig | None = None)
             out.lines.ref_keyframe_id[grp.rows] = m.keyframes.ids[grp.ref_kf]
             out.lines.inverse_depth[grp.rows] = inv
     return out
-
-
-def _fits_worse_than_input(
-    m: Map, grp: LineGroup, L: np.ndarray, owner: np.ndarray, T_obs: np.ndarray, config: BAConfig
-) -> np.ndarray:
-    """(M,) lines of a free kind whose robust cost over their observations, from the adjusted poses, is
-    higher than their input geometry's: an LM step is accepted for the whole problem, and where one line's
-    linearisation fails it can throw that line far while the other landmarks pay for the step; taking
-    the better of the two lowers the BA's cost for the same poses."""
-    e0 = m.lines.endpoints_w[grp.rows]
-    L0 = geo.normalize_plucker(geo.plucker_from_endpoints(e0[:, 0], e0[:, 1]))
-    cost = []
-    for lines in (L, L0):
-        e = geo.endpoint_errors(m.camera.K, geo.plucker_to_camera(lines[owner], T_obs), grp.obs_xy)
-        r = huber_cost_residual(e / config.line_sigma_px, config.huber_k)
-        c = np.zeros(len(L))
-        np.add.at(c, owner, np.sum(r * r, axis=-1))
-        cost.append(np.where(np.isfinite(c), c, np.inf))
-    return cost[0] > cost[1]
 
 
 def _check_finite(out: Map, pb: Problem) -> None:
