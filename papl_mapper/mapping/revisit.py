@@ -6,8 +6,9 @@ mutual best), and PnP with RANSAC on the old 3D points verifies the match geomet
 Closing the loop spreads the drift (the Sim(3) between the tracked pose and the pose from the
 old points) over the frames since the old visit, then fuses each matched track into the old one,
 so later PnP, triangulation and bundle adjustment see one 3D point per place. `RevisitGate` decides
-which verified revisits close a loop: a small correction at once, a large one (scale lost in a turn)
-only when consecutive keyframes find the same correction, as ORB-SLAM asks of its loop candidates.
+which verified revisits close a loop: a small correction at once, a large one (drift in scale) only
+when consecutive keyframes find the same correction, as ORB-SLAM asks of its loop candidates, from
+old points triangulated well enough to place the camera.
 """
 
 from __future__ import annotations
