@@ -355,7 +355,13 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
 
     bounds = np.concatenate([[0], np.cumsum(a["revisit_n_pairs"])])
     n_rv = len(a["revisit_frame"])
-    tracked = a.get("revisit_tracked_T_cw", np.full((n_rv, 4, 4), np.nan))
+
+    def newer(key: str, shape: tuple[int, ...] = ()) -> np.ndarray:
+        """A revisit field later formats added; unknown (NaN) in an older checkpoint."""
+        return a.get(key, np.full((n_rv, *shape), np.nan))
+
+    tracked = newer("revisit_tracked_T_cw", (4, 4))
+    path, old_parallax, angle = (newer(f"revisit_{k}") for k in ("path", "old_parallax_deg", "angle_deg"))
     revisits = [
         Revisit(
             frame=int(a["revisit_frame"][i]),
@@ -364,9 +370,9 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
             old_frame=int(a["revisit_old_frame"][i]),
             drift=float(a["revisit_drift"][i]),
             scale=float(a["revisit_scale"][i]),
-            path=float(a.get("revisit_path", np.full(n_rv, np.nan))[i]),
-            old_parallax_deg=float(a.get("revisit_old_parallax_deg", np.full(n_rv, np.nan))[i]),
-            angle_deg=float(a.get("revisit_angle_deg", np.full(n_rv, np.nan))[i]),
+            path=float(path[i]),
+            old_parallax_deg=float(old_parallax[i]),
+            angle_deg=float(angle[i]),
             tracked_T_cw=None if np.isnan(tracked[i]).any() else tracked[i],
         )
         for i in range(n_rv)

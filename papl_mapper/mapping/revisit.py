@@ -246,12 +246,12 @@ class RevisitGate:
 def _agree(a: Revisit, b: Revisit, cfg: RevisitConfig) -> bool:
     """Whether two revisits' corrections agree: each puts the other's tracked camera centre where the
     other's old points do, to within `agree_fraction` of that correction, and their rotations agree."""
-    (Ra, ta, sa), (Rb, tb, sb) = a.correction(), b.correction()
-    for (R, t, s), other in (((Ra, ta, sa), b), ((Rb, tb, sb), a)):
+    ca, cb = a.correction(), b.correction()
+    for (R, t, s), other in ((ca, b), (cb, a)):
         moved = s * R @ _centre(other.tracked_T_cw) + t
         if np.linalg.norm(moved - _centre(other.T_cw)) > cfg.agree_fraction * other.drift:
             return False
-    return _angle_deg(Ra @ Rb.T) <= cfg.agree_deg
+    return _angle_deg(ca[0] @ cb[0].T) <= cfg.agree_deg
 
 
 def close_loop(
@@ -271,9 +271,6 @@ def close_loop(
     is renamed in place (the later track continues the old one, as the frontend's re-association does).
     """
     f, f0 = revisit.frame, revisit.old_frame
-    if revisit.tracked_T_cw is None:
-        revisit.tracked_T_cw = T_cw[f].copy()
-        revisit.scale = _scale_correction(revisit, points_w, T_cw[f])
     R, t, scale = revisit.correction()
     rotvec = so3_log(R)
 
