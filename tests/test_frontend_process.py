@@ -223,7 +223,7 @@ def test_threaded_stages_give_the_same_tracks(video, result):
 
 def test_an_interrupt_stops_the_decoder_thread_before_it_propagates(video):
     """Ctrl-C in the middle of the frontend: the decoding thread has ended when the interrupt leaves
-    `process` (a daemon thread still inside the decoder at interpreter exit aborts the process)."""
+    `process` (a decoder still running holds the interpreter at exit, or aborts it inside OpenCV)."""
     path, cam, _, _ = video
 
     def interrupt(done: int, total: int, message: str) -> None:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
+import threading
 
 import cv2
 import numpy as np
@@ -74,6 +77,36 @@ def test_iteration_can_stop_early_and_restart(mp4):
         if k == 3:
             break
     assert len(list(rec)) == N
+
+
+def test_ctrl_c_inside_the_decoder_thread_start_still_stops_the_thread(mp4, monkeypatch):
+    """Ctrl-C can land in Thread.start() once the new thread runs (start waits for it): the decoder
+    thread must still stop, else it is inside OpenCV when the interpreter exits and aborts it."""
+    start, started = threading.Thread.start, []
+
+    def interrupted_start(self: threading.Thread) -> None:
+        start(self)
+        started.append(self)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(threading.Thread, "start", interrupted_start)
+    with pytest.raises(KeyboardInterrupt):
+        next(iter(open_recording(mp4, prefetch=2)))
+    monkeypatch.undo()
+    [decoder] = started
+    decoder.join(timeout=5.0)
+    assert decoder.name.startswith("decode-") and not decoder.is_alive() and not decoder.daemon
+
+
+def test_a_decoder_never_closed_lets_the_interpreter_exit(mp4):
+    """A recording iterator left open at exit (kept in a cycle): the interpreter stops the thread and
+    exits cleanly instead of waiting for it forever or aborting inside OpenCV."""
+    code = (
+        "import sys\nfrom papl_mapper.frontend.video import open_recording\n"
+        "it = iter(open_recording(sys.argv[1], prefetch=2))\nnext(it)\ncycle = [it]\ncycle.append(cycle)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code, str(mp4)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
 
 
 def test_image_folder_natural_order_and_timestamps_file(tmp_path):

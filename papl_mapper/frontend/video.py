@@ -164,9 +164,12 @@ class Recording:
         """Decode in a background thread (bounded queue); stop the thread if the consumer stops."""
         q: queue.Queue = queue.Queue(maxsize=max(1, self.prefetch))
         stop = threading.Event()
+        main = threading.main_thread()
 
         def put(item: object) -> bool:
-            while not stop.is_set():
+            # a consumer that never closes this generator still lets the interpreter exit: it stops
+            # the main thread first, then joins this (non-daemon) thread
+            while not stop.is_set() and main.is_alive():
                 try:
                     q.put(item, timeout=0.1)
                     return True
@@ -184,9 +187,11 @@ class Recording:
                 return
             put(_END)
 
-        thread = threading.Thread(target=worker, name=f"decode-{self.path.name}", daemon=True)
-        thread.start()
+        # not a daemon: a daemon thread still inside OpenCV when the interpreter exits is unwound
+        # through C++ and aborts the process ("terminate called without an active exception")
+        thread = threading.Thread(target=worker, name=f"decode-{self.path.name}")
         try:
+            thread.start()  # Ctrl-C can land in start(), after the thread runs: the finally stops it
             while True:
                 item = q.get()
                 if item is _END:
@@ -195,10 +200,9 @@ class Recording:
                     raise item
                 yield item
         finally:
-            # wait for the thread to leave the decoder (it stops at its next frame): a daemon thread still
-            # inside OpenCV when the interpreter exits is unwound through C++ and aborts the process
-            stop.set()
-            thread.join()
+            stop.set()  # the thread leaves at its next frame
+            if thread.is_alive():
+                thread.join()
 
     def frames(self) -> Iterator[Frame]:
         """Decode in the calling thread (no prefetch); same frames as iterating the Recording."""
