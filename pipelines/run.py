@@ -40,6 +40,7 @@ from papl_mapper.mapping import frames
 from papl_mapper.mapping.adjust import adjust
 from papl_mapper.mapping.assemble import (
     assemble_map,
+    cull_observations,
     drop_stray_lines,
     upright_by_axes,
     upright_by_vanishing_points,
@@ -358,6 +359,7 @@ def map_tracks(
         if not upright:
             log.warning("no vertical vanishing direction: the map keeps the first camera's orientation")
         if cfg.variant.lines == "none":
+            _cull_after_ba(m, cfg, stats)
             return m, stats
         with timer.stage("lines"):
             # every registered frame's segments, not only the keyframes': more views, longer baselines
@@ -394,11 +396,22 @@ def map_tracks(
         if changed:
             with timer.stage("ba_full"):
                 m, stats.ba = _ba(m, cfg, progress, "BA (after axis update)")
+    _cull_after_ba(m, cfg, stats)
     dropped = drop_stray_lines(m, cfg.stray_line_margin)
     if dropped:
         log.info("%d lines reaching outside the points' extent dropped after BA", dropped)
     upright_by_axes(m)
     return m, stats
+
+
+def _cull_after_ba(m: Map, cfg: RunConfig, stats: MappingStats) -> None:
+    """The error limits every BA starts from, applied to the map the last one left (in place): an
+    observation it moved beyond them (a free line thrown by a step the points paid for) is dropped, and
+    a line or point left without views with it, so the exported map fits what it says it saw."""
+    culled = cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views, 1)
+    stats.culled_after_ba = culled
+    if any(culled.values()):
+        log.info("after the last BA: culled %s", ", ".join(f"{v} {k}" for k, v in culled.items() if v))
 
 
 def _save(store: StageStore, timer: _Timer, stage: str, write: Callable[..., None], **kw: Any) -> None:

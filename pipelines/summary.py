@@ -57,6 +57,9 @@ class MappingStats:
     """Segment tracks merged and completed into the map lines after the full BA."""
     axis_update: list[str] | None = None
     """What the axis update after the full BA did, one line per change."""
+    culled_after_ba: dict[str, int] | None = None
+    """Observations beyond the error limits after the last BA, and the points and lines they left without
+    views, removed from the map (`cull_observations`' counts)."""
 
     def as_dict(self) -> dict[str, Any]:
         return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
