@@ -37,10 +37,9 @@ from papl_mapper.frontend.camera import camera_for_recording
 from papl_mapper.frontend.video import open_recording
 from papl_mapper.map import Map
 from papl_mapper.mapping import frames
-from papl_mapper.mapping.adjust import adjust
+from papl_mapper.mapping.adjust import adjust, cull
 from papl_mapper.mapping.assemble import (
     assemble_map,
-    cull_observations,
     drop_stray_lines,
     upright_by_axes,
     upright_by_vanishing_points,
@@ -408,10 +407,9 @@ def _cull_after_ba(m: Map, cfg: RunConfig, stats: MappingStats) -> None:
     """The error limits every BA starts from, applied to the map the last one left (in place): an
     observation it moved beyond them (a free line thrown by a step the points paid for) is dropped, and
     a line or point left without views with it, so the exported map fits what it says it saw."""
-    culled = cull_observations(m, cfg.max_point_error_px, cfg.max_line_error_px, cfg.ba.min_views, 1)
-    stats.culled_after_ba = culled
-    if any(culled.values()):
-        log.info("after the last BA: culled %s", ", ".join(f"{v} {k}" for k, v in culled.items() if v))
+    stats.culled_after_ba = cull(
+        m, cfg.ba, cfg.max_point_error_px, cfg.max_line_error_px, "after the last BA"
+    )
 
 
 def _save(store: StageStore, timer: _Timer, stage: str, write: Callable[..., None], **kw: Any) -> None:

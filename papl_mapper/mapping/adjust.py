@@ -14,6 +14,16 @@ from papl_mapper.mapping.assemble import cull_observations
 log = logging.getLogger(__name__)
 
 
+def cull(
+    m: Map, config: BAConfig, max_point_error_px: float, max_line_error_px: float, title: str
+) -> dict[str, int]:
+    """Observations reprojecting beyond the limits culled (in place), with the points and lines they
+    leave with too few views (`config.min_views`; a line keeps one); the counts, logged under `title`."""
+    culled = cull_observations(m, max_point_error_px, max_line_error_px, config.min_views, 1)
+    log.info("%s: culled %s", title, ", ".join(f"{v} {k}" for k, v in culled.items() if v) or "nothing")
+    return culled
+
+
 def adjust(
     m: Map,
     config: BAConfig,
@@ -24,8 +34,7 @@ def adjust(
 ) -> tuple[Map, dict[str, Any]]:
     """Observations reprojecting beyond the limits culled, then global BA (`progress(i, n, message)` per
     LM iteration); the adjusted map (metadata kept) and its statistics."""
-    culled = cull_observations(m, max_point_error_px, max_line_error_px, config.min_views, 1)
-    log.info("%s: culled %s", title, ", ".join(f"{v} {k}" for k, v in culled.items() if v) or "nothing")
+    culled = cull(m, config, max_point_error_px, max_line_error_px, title)
     report = (lambda i, n, cost: progress(i, n, f"cost {cost:.6g}")) if progress is not None else None
     res = global_ba(m, config, progress=report)
     log.info(
