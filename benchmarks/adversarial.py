@@ -1,5 +1,6 @@
 """The job on the synthetic adversarial recordings: rotation-first start, dropped frames, a photo set,
-a low-texture corridor, and a camera that only turns in place.
+a low-texture corridor, a camera that only turns in place, and a hand-held camera's motion blur,
+exposure changes and noise.
 
 Each case is rendered once (cached under --cache) with `papl-map synth --variant`, then mapped by
 the whole job (`pipelines.run.run`, as `papl-map run` does) with the full model and points only.
@@ -41,6 +42,7 @@ CASES = {
     "photo-set": {"seconds": 40.0},  # 40 photos at 1 Hz
     "low-texture": {},
     "rotation-only": {},
+    "hand-held": {},
 }
 
 

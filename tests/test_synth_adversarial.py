@@ -250,6 +250,29 @@ def test_same_seed_same_output_other_seed_differs(tmp_path):
     assert (c / "gt/trajectory.tum").read_bytes() != (a / "gt/trajectory.tum").read_bytes()
 
 
+def test_hand_held_is_blur_exposure_and_noise_and_named_only_when_exactly_those():
+    cfg = with_variants(SynthConfig(), "hand-held")
+    assert (cfg.motion_blur, cfg.exposure_jitter, cfg.noise_sigma) == (0.5, 0.3, 2.0)
+    assert cfg.variants == ["hand-held"] and cfg.motion == "walk" and cfg.frame_indices().size == cfg.n_frames
+    assert with_variants(SynthConfig(), "low-texture", "hand-held").variants == ["low-texture", "hand-held"]
+    # other strengths of the same effects are a plain walk with options, not the named variant
+    assert dataclasses.replace(cfg, motion_blur=0.25).variants == []
+    assert dataclasses.replace(SynthConfig(), motion_blur=0.5, exposure_jitter=0.3).variants == []
+
+
+def test_hand_held_frames_are_blurred_and_change_exposure(tmp_path):
+    plain = SynthConfig(**SMALL, seconds=3.0, seed=2)
+    a = generate(plain, tmp_path / "plain")
+    b = generate(with_variants(plain, "hand-held"), tmp_path / "held")
+    fa, _ = _video(a / "video.mp4")
+    fb, _ = _video(b / "video.mp4")
+    assert len(fa) == len(fb) == plain.n_frames
+    assert (a / "gt/trajectory.tum").read_bytes() == (b / "gt/trajectory.tum").read_bytes(), "same walk"
+    ratio = np.array([fb[i].mean() / fa[i].mean() for i in range(len(fa))])
+    assert ratio.max() / ratio.min() > 1.1, "brightness varies over the walk"
+    assert json.loads((b / "scene.json").read_text())["variants"] == ["hand-held"]
+
+
 def test_plain_config_records_no_variant_fields():
     d = SynthConfig().to_dict()
     assert "motion" not in d and "photo_hz" not in d and SynthConfig(**d) == SynthConfig()
@@ -266,6 +289,8 @@ def test_plain_config_records_no_variant_fields():
         with_variants(SynthConfig(), "photo-set"),
         dataclasses.replace(SynthConfig(), photo_hz=2.0, write_frames=True),
         dataclasses.replace(SynthConfig(), pan_deg=30.0),
+        with_variants(SynthConfig(), "hand-held", "dropped-frames"),
+        dataclasses.replace(with_variants(SynthConfig(), "hand-held"), motion_blur=0.25),
     ],
 )
 def test_variant_options_round_trip_through_the_command_line(cfg):

@@ -17,6 +17,8 @@ VARIANT_HELP = """adversarial variants (--variant NAME[,NAME...], combinable):
   photo-set       frames of the walk at --photo-hz (default 1) as DIR/frames/*.png with
                   frames/timestamps.txt, no video: map it with `papl-map run DIR/frames`
   low-texture     blank walls and ceilings, faint floor (same geometry and ground truth)
+  hand-held       a hand-held camera's motion blur (half the frame time), exposure changes (0.3 stops
+                  RMS) and image noise (2 grey levels): --blur 0.5 --exposure 0.3 --noise 2
 not combinable: rotation-start with rotation-only, dropped-frames with photo-set.
 example: papl-map synth corridor --variant rotation-start,low-texture --out out/synth-rs"""
 

@@ -71,6 +71,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "dropped-frames": {"drop_fraction": 0.1},
     "photo-set": {"photo_hz": 1.0},
     "low-texture": {"low_texture": True},
+    "hand-held": {"motion_blur": 0.5, "exposure_jitter": 0.3, "noise_sigma": 2.0},
 }
 #: Fields of the variants: left out of scene.json and the GT map's metadata while all are default,
 #: so a plain walkthrough is written exactly as before they existed.
@@ -144,6 +145,10 @@ class SynthConfig:
         out += ["dropped-frames"] if self.drop_fraction > 0 else []
         out += ["photo-set"] if self.photo_hz > 0 else []
         out += ["low-texture"] if self.low_texture else []
+        # camera effects, not a kind of walk: named only when they are exactly the variant's, so that the
+        # command written to scene.json (explicit --blur, --exposure, --noise, then --variant) is this config
+        held = VARIANTS["hand-held"]
+        out += ["hand-held"] if all(getattr(self, k) == v for k, v in held.items()) else []
         return out
 
     def frame_indices(self) -> np.ndarray:
