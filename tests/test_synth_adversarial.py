@@ -260,7 +260,7 @@ def test_hand_held_is_blur_exposure_and_noise_and_named_only_when_exactly_those(
     assert dataclasses.replace(SynthConfig(), motion_blur=0.5, exposure_jitter=0.3).variants == []
 
 
-def test_hand_held_frames_are_blurred_and_change_exposure(tmp_path):
+def test_hand_held_render_keeps_the_walk_and_changes_exposure(tmp_path):
     plain = SynthConfig(**SMALL, seconds=3.0, seed=2)
     a = generate(plain, tmp_path / "plain")
     b = generate(with_variants(plain, "hand-held"), tmp_path / "held")
