@@ -11,6 +11,11 @@ against the part of it the recording shows ("rec vis", papl_mapper/eval/visibili
     .venv/bin/python benchmarks/accuracy.py --scenes corridor --seconds 8 --variants full,points-only
     .venv/bin/python benchmarks/accuracy.py --scenes corridor --seconds 35 --noise 1 \
         --variants full,no-revisit --out benchmarks/results/accuracy_loop.json   # one whole loop
+    .venv/bin/python benchmarks/accuracy.py --source frames --seeds 0,1,2 --variants full,points-only \
+        --out benchmarks/results/accuracy_frames.json   # the same renders' lossless PNG frames
+
+`--source frames` renders each case once more with its PNG frames (the MP4 of that render is the same
+file) and maps the frames: the difference to `--source video` is the video codec's share of the error.
 """
 
 from __future__ import annotations
@@ -44,21 +49,30 @@ def _commit() -> str:
     return git_commit()
 
 
-def _recording(cache: Path, scene: str, noise: float, seconds: float, seed: int = 0) -> Path:
-    folder = cache / f"{scene}_noise{noise:g}_{seconds:g}s{f'_seed{seed}' if seed else ''}"
-    if not (folder / "video.mp4").exists():
-        generate(SynthConfig(scene=scene, seconds=seconds, noise_sigma=noise, seed=seed), folder)
+def _recording(
+    cache: Path, scene: str, noise: float, seconds: float, seed: int = 0, frames: bool = False
+) -> Path:
+    """The cached render of one case; with `frames` a separate render that also holds its PNG frames."""
+    name = f"{scene}_noise{noise:g}_{seconds:g}s{f'_seed{seed}' if seed else ''}{'_frames' if frames else ''}"
+    folder = cache / name
+    if not (folder / ("frames" if frames else "video.mp4")).exists():
+        cfg = SynthConfig(scene=scene, seconds=seconds, noise_sigma=noise, seed=seed, write_frames=frames)
+        generate(cfg, folder)
     return folder
 
 
-def _tracks(folder: Path, overrides: list[str], cache: Path) -> tuple[Tracks, float]:
-    """Frontend tracks of a recording for the frontend part of a variant (cached on disk)."""
+def _tracks(folder: Path, overrides: list[str], source: str) -> tuple[Tracks, float]:
+    """Frontend tracks of a recording for the frontend part of a variant (cached on disk); `source` is
+    "video" (the MP4) or "frames" (the lossless PNG frames of the same render)."""
     fe = [o for o in overrides if o.startswith(FRONTEND_KEYS)]
-    path = folder / f"tracks_{'_'.join(fe).replace('=', '-').replace('.', '-') or 'default'}.npz"
+    tag = "_".join(fe).replace("=", "-").replace(".", "-") or "default"
+    path = folder / f"tracks_{tag}{'_frames' if source == 'frames' else ''}.npz"
     if path.exists():
         return Tracks.load(path), float("nan")
     cfg = load_config(RunConfig, None, fe)
-    rec = open_recording(folder / "video.mp4")
+    fps = json.loads((folder / "scene.json").read_text())["config"]["fps"]
+    video = folder / "video.mp4"
+    rec = open_recording(folder / "frames", fps=fps) if source == "frames" else open_recording(video)
     t0 = time.perf_counter()
     tracks = process(rec, read_camera_file(folder / "camera.json"), cfg.frontend, stats=FrontendStats())
     dt = time.perf_counter() - t0
@@ -84,6 +98,12 @@ def main() -> int:
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--seeds", default="0", help="walk seeds per scene (the walk and the noise differ)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override, every variant")
+    ap.add_argument(
+        "--source",
+        choices=("video", "frames"),
+        default="video",
+        help="map the render's MP4 (default) or its lossless PNG frames: the codec's share of the error",
+    )
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     rows = []
@@ -100,13 +120,13 @@ def main() -> int:
         for noise in (float(n) for n in args.noise.split(","))
     ]
     for scene, noise, seed in cases:
-        folder = _recording(args.cache, scene, noise, args.seconds, seed)
+        folder = _recording(args.cache, scene, noise, args.seconds, seed, frames=args.source == "frames")
         label = f"{scene}#{seed}" if seed else scene
         for variant in args.variants.split(","):
             overrides = PRESETS[variant] + args.set
             row = {"scene": scene, "noise": noise, "seed": seed, "variant": variant}
             try:
-                tracks, fe_s = _tracks(folder, overrides, args.cache)
+                tracks, fe_s = _tracks(folder, overrides, args.source)
                 cfg = load_config(RunConfig, None, overrides)
                 t0 = time.perf_counter()
                 m, _ = map_tracks(tracks, cfg)
@@ -150,6 +170,7 @@ def main() -> int:
                 {
                     "benchmark": "accuracy",
                     "seconds_per_recording": args.seconds,
+                    "source": args.source,
                     "rows": rows,
                     "machine": {
                         "nproc": os.cpu_count(),

@@ -185,6 +185,21 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
                     ),
                 )
             ],
+            "accuracy_frames.json": [
+                Rows(
+                    "rows",
+                    (
+                        "scene",
+                        "noise",
+                        "seed",
+                        "variant",
+                        "ate_rel_path",
+                        "line_recall_1pct",
+                        "line_precision_1pct",
+                        "map_s",
+                    ),
+                )
+            ],
             **{
                 name: [
                     Rows(
