@@ -46,6 +46,12 @@ class Keys:
     patterns: tuple[str, ...]
 
 
+SEEDED_ACCURACY_ROWS = Rows(
+    "rows",
+    ("scene", "noise", "seed", "variant", "ate_rel_path", "line_recall_1pct", "line_precision_1pct", "map_s"),
+)
+"""The table of an accuracy.py run over several walk seeds."""
+
 AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
     (
         "Frontend",
@@ -170,36 +176,8 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
                     ),
                 )
             ],
-            "accuracy_final_completion.json": [
-                Rows(
-                    "rows",
-                    (
-                        "scene",
-                        "noise",
-                        "seed",
-                        "variant",
-                        "ate_rel_path",
-                        "line_recall_1pct",
-                        "line_precision_1pct",
-                        "map_s",
-                    ),
-                )
-            ],
-            "accuracy_frames.json": [
-                Rows(
-                    "rows",
-                    (
-                        "scene",
-                        "noise",
-                        "seed",
-                        "variant",
-                        "ate_rel_path",
-                        "line_recall_1pct",
-                        "line_precision_1pct",
-                        "map_s",
-                    ),
-                )
-            ],
+            "accuracy_final_completion.json": [SEEDED_ACCURACY_ROWS],
+            "accuracy_frames.json": [SEEDED_ACCURACY_ROWS],
             **{
                 name: [
                     Rows(
