@@ -2,11 +2,8 @@
 
 Track ids persist for as long as KLT (with its forward-backward check) follows a corner. On
 keyframes every live track gets an ORB descriptor; a track born since the previous keyframe
-whose descriptor matches a recently lost track near where that track would be now takes over the
-lost track's id (re-association after a brief occlusion or KLT failure). Lost tracks are carried
-along by the image motion of every frame pair (the homography of the surviving tracks' flow), so
-that under camera motion a young track is compared with where the lost point went, not with where
-it was last seen.
+whose descriptor matches a recently lost track near its last position takes over the lost
+track's id (re-association after a brief occlusion or KLT failure).
 """
 
 from __future__ import annotations
@@ -45,8 +42,8 @@ class PointConfig:
     """Largest Hamming distance (of 256 bits) of an ORB re-association."""
     orb_ratio: float = 0.8
     """Lowe ratio of the best to the second-best ORB distance."""
-    reassociate_radius_px: float = 8.0
-    """A lost track is re-found only this close to where the image motion since its loss has taken it."""
+    reassociate_radius_px: float = 30.0
+    """A lost track is re-found only this close to where it was last seen."""
     lost_memory_frames: int = 60
     """How long (frames) a lost track can be re-found."""
 
@@ -77,68 +74,42 @@ class PointTracker:
         ] = {}  # track id -> frame counter of birth (only tracks born since the last keyframe)
         self.aliases: dict[int, int] = {}  # track id -> earlier id it continues
         self._kf_desc: dict[int, np.ndarray] = {}  # live id -> ORB descriptor at its last keyframe
-        self._motion: np.ndarray | None = None  # homography of the last frame pair's image motion
+        self._kf_uv: dict[int, np.ndarray] = {}
         self._lost = _Lost(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64), np.zeros(0))
         self._orb = cv2.ORB_create(edgeThreshold=15, patchSize=15)
 
     def step(self, gray: np.ndarray, prev: np.ndarray | None, force_detect: bool = False) -> None:
         """Follow live tracks from gray image prev to gray; replenish corners where sparse."""
         self.frame += 1
-        motion = self._motion if self.flow.predict else None
-        self._motion = None
+        motion = predict_flow(self.flow_from, self.flow_to) if self.flow.predict else None
         self.flow_from = self.flow_to = np.zeros((0, 2), np.float32)
         if prev is not None and len(self.ids):
             new_uv, ok = track_klt(prev, gray, self.uv, self.flow, self.width, self.height, motion)
+            self._forget(self.ids[~ok])
             self.flow_from, self.flow_to = self.uv[ok], new_uv[ok]
-            self._motion = predict_flow(self.flow_from, self.flow_to)
-            self._forget(self.ids[~ok], self.uv[~ok])
             self.ids, self.uv = self.ids[ok], new_uv[ok]
-        else:  # nothing tracked into this frame: no image motion to follow the lost tracks by
-            self._forget(self.ids, self.uv)
+        elif prev is None and len(self.ids):
+            self._forget(self.ids)
             self.ids, self.uv = np.zeros(0, np.int64), np.zeros((0, 2), np.float32)
-        self._follow_lost(self._motion)
         if force_detect or len(self.ids) < self.config.replenish_below * self.config.max_points:
             self._replenish(gray)
 
-    def _forget(self, lost_ids: np.ndarray, last_uv: np.ndarray) -> None:
-        """Move lost tracks that have a keyframe descriptor into the re-association pool, at their last
-        tracked position (in the previous frame)."""
+    def _forget(self, lost_ids: np.ndarray) -> None:
+        """Move lost tracks that have a keyframe descriptor into the re-association pool."""
+        if not self.config.reassociate:
+            return
+        keep = [i for i in lost_ids.tolist() if i in self._kf_desc]
         for i in lost_ids.tolist():
             self.born.pop(i, None)
-        desc = [self._kf_desc.pop(i, None) for i in lost_ids.tolist()]
-        keep = np.array([d is not None for d in desc], bool)
-        if not self.config.reassociate or not keep.any():
+        if not keep:
             return
-        ids = lost_ids[keep]
         lost = self._lost
         self._lost = _Lost(
-            np.vstack([lost.uv, last_uv[keep].astype(np.float64)]),
-            np.vstack([lost.desc, np.array([d for d in desc if d is not None])]),
-            np.concatenate([lost.ids, ids]),
-            np.concatenate([lost.lost_at, np.full(len(ids), self.frame)]),
+            np.vstack([lost.uv, np.array([self._kf_uv.pop(i) for i in keep])]),
+            np.vstack([lost.desc, np.array([self._kf_desc.pop(i) for i in keep])]),
+            np.concatenate([lost.ids, np.array(keep, np.int64)]),
+            np.concatenate([lost.lost_at, np.full(len(keep), self.frame)]),
         )
-
-    def _follow_lost(self, motion: np.ndarray | None) -> None:
-        """Carry the lost tracks into the current frame by its image motion; without one (nothing
-        tracked, too little flow) they cannot be followed and are dropped, as those leaving the image."""
-        lost = self._lost
-        if len(lost.ids) == 0:
-            return
-        if motion is None:
-            self._lost = _Lost(
-                np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64), np.zeros(0)
-            )
-            return
-        uv = cv2.perspectiveTransform(lost.uv.reshape(-1, 1, 2), motion).reshape(-1, 2)
-        r = self.config.reassociate_radius_px
-        keep = (
-            np.isfinite(uv).all(axis=1)
-            & (uv[:, 0] > -r)
-            & (uv[:, 1] > -r)
-            & (uv[:, 0] < self.width + r)
-            & (uv[:, 1] < self.height + r)
-        )
-        self._lost = _Lost(uv[keep], lost.desc[keep], lost.ids[keep], lost.lost_at[keep])
 
     def _replenish(self, gray: np.ndarray) -> None:
         cfg = self.config
@@ -174,8 +145,9 @@ class PointTracker:
         if self.config.reassociate:
             self._reassociate(rows, desc)
         ids = self.ids[rows]
-        for i, d in zip(ids.tolist(), desc, strict=True):
+        for i, r, d in zip(ids.tolist(), rows.tolist(), desc, strict=True):
             self._kf_desc[i] = d
+            self._kf_uv[i] = self.uv[r].astype(np.float64)
         self.born.clear()
         self._expire()
         return ids, desc
