@@ -70,9 +70,10 @@ def _tracks(folder: Path, overrides: list[str], source: str) -> tuple[Tracks, fl
     if path.exists():
         return Tracks.load(path), float("nan")
     cfg = load_config(RunConfig, None, fe)
-    fps = json.loads((folder / "scene.json").read_text())["config"]["fps"]
-    video = folder / "video.mp4"
-    rec = open_recording(folder / "frames", fps=fps) if source == "frames" else open_recording(video)
+    if source == "frames":  # the render's own frame times, as the MP4 carries them
+        rec = open_recording(folder / "frames", timestamps=folder / "timestamps.txt")
+    else:
+        rec = open_recording(folder / "video.mp4")
     t0 = time.perf_counter()
     tracks = process(rec, read_camera_file(folder / "camera.json"), cfg.frontend, stats=FrontendStats())
     dt = time.perf_counter() - t0
