@@ -39,7 +39,7 @@ class Tracks:
     line_vp: np.ndarray  # (Kl,) int64, index into vp_dirs_c[frame] or -1
     vp_dirs_c: np.ndarray  # (F, V, 3) float64, NaN where absent
     vertical_vp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (F,) or empty
-    # keyframe descriptors for re-association and revisits: ORB of point rows, LBD of line rows
+    # keyframe descriptors (track completion, revisits, merging): ORB of point rows, LBD of line rows
     point_desc_row: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (Dp,) row
     point_desc: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))  # (Dp, 32) ORB
     line_desc_row: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (Dl,) row

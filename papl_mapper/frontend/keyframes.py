@@ -74,8 +74,3 @@ class KeyframeSelector:
         if is_kf:
             self._ids, self._uv, self._last, self._last_t = ids.copy(), uv.copy(), self._frame, t
         return is_kf
-
-    def set_reference(self, ids: np.ndarray, uv: np.ndarray) -> None:
-        """Replace the last keyframe's tracks (after re-association renamed some of them)."""
-        self._ids = np.asarray(ids, np.int64).copy()
-        self._uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()

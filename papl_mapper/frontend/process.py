@@ -1,7 +1,7 @@
 """The frontend: one recording -> `Tracks` (undistorted observations with persistent track ids).
 
 Per frame: KLT point tracks, segments (EDLines/LSD) with their tracks, keyframe choice, and on
-keyframes ORB/LBD descriptors with re-association of lost tracks. Vanishing directions follow
+keyframes ORB/LBD descriptors (LBD also re-associates lost segment tracks). Vanishing directions follow
 frame by frame (in a worker thread, overlapping the next frames' work): the vertical is initialised
 from the first frames, then tracked while each frame gets its Atlanta directions and structural labels.
 Frames without texture (near-uniform) are skipped; their indices are in `Tracks.skipped_frames`.
@@ -67,7 +67,7 @@ class FrontendConfig:
     flow: FlowConfig = field(default_factory=FlowConfig)
     """KLT settings shared by points and line prediction."""
     points: PointConfig = field(default_factory=PointConfig)
-    """Corner detection, replenishment and ORB re-association."""
+    """Corner detection and replenishment."""
     lines: LineConfig = field(default_factory=LineConfig)
     """Segment detection, fusion, tracking and LBD."""
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
@@ -402,7 +402,6 @@ class _Run:
         row = len(self.frame_index)
         if kf:
             pids, pdesc = points.keyframe(small)
-            self.selector.set_reference(points.ids, points.uv)
             lids, ldesc = lines.keyframe(small, self.lbd, self.work_scale)
             # descriptor rows: position of each described id among this frame's observations
             self.pd_row.append(self.n_points + _positions(points.ids, pids))
@@ -439,7 +438,7 @@ class _Run:
         """KLT point observations with the feature tracks matched across weak links added, in frame
         order, and the geometry of the keyframe pairs the features verified."""
         frame = np.concatenate(self.p_frame)
-        track = self.points.resolve(np.concatenate(self.p_track))
+        track = np.concatenate(self.p_track)
         uv = np.concatenate(self.p_uv).reshape(-1, 2)
         desc_row = _cat(self.pd_row, np.int64, (0,))
         desc = _cat(self.pd_desc, np.uint8, (0, 32))

@@ -268,7 +268,7 @@ def close_loop(
     old points see it (scale from the depths of matched points mapped on both visits); frames
     and points after the old visit get a fraction of it growing with the frame index, so the
     trajectory bends smoothly instead of jumping. Poses are changed in place; `tracks.point_track`
-    is renamed in place (the later track continues the old one, as the frontend's re-association does).
+    is renamed in place (the later track continues the old one, as track completion's merges do).
     """
     f, f0 = revisit.frame, revisit.old_frame
     R, t, scale = revisit.correction()
