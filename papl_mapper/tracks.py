@@ -114,21 +114,13 @@ class Tracks:
 class PointRows:
     """Point observation rows grouped by track id: a few tracks' observations without scanning all.
 
-    Built from `tracks.point_track` as it is now; after track ids change, build it again (loop
-    closure renames many tracks in place) or tell it each rename (`rename`).
+    Built from `tracks.point_track` as it is now; build it again after track ids change (loop
+    closure renames tracks in place).
     """
 
     def __init__(self, tracks: Tracks):
         self._order = np.argsort(tracks.point_track, kind="stable")
         self._sorted = tracks.point_track[self._order]
-        self._folded: dict[int, list[int]] = {}  # track id -> ids built under that it took in since
-        self._gone: set[int] = set()  # ids built under that were renamed since
-
-    def rename(self, old: int, new: int) -> None:
-        """Track `old` was renamed `new` in `tracks.point_track`: its rows are `new`'s from now on (one
-        rename costs no rebuild, where registration renames a few tracks at many keyframes)."""
-        self._folded.setdefault(new, []).extend([old, *self._folded.pop(old, [])])
-        self._gone.add(old)
 
     def rows(self, ids: np.ndarray) -> np.ndarray:
         """Rows (ascending) of every observation of the track ids `ids` (unique)."""
@@ -138,18 +130,6 @@ class PointRows:
         """Rows of every observation of the track ids `ids` (repeats allowed), id by id, and for each
         row the index in `ids` it belongs to."""
         ids = np.asarray(ids, np.int64)
-        if self._folded:
-            built, owner = [], []
-            for k, i in enumerate(ids.tolist()):
-                keys = ([] if i in self._gone else [i]) + self._folded.get(i, [])
-                built += keys
-                owner += [k] * len(keys)
-            rows, which = self._built_rows(np.array(built, np.int64))
-            return rows, np.array(owner, np.int64)[which] if len(owner) else which
-        return self._built_rows(ids)
-
-    def _built_rows(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """rows_by_id under the ids the index was built with."""
         lo = np.searchsorted(self._sorted, ids, "left")
         n = np.searchsorted(self._sorted, ids, "right") - lo
         starts = np.repeat(lo - (np.cumsum(n) - n), n)

@@ -21,7 +21,6 @@ from papl_mapper.geometry.similarity import Sim3, umeyama
 from papl_mapper.geometry.triangulation import max_reprojection_px, triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions
-from papl_mapper.mapping.refind import RefindConfig, Refinder
 from papl_mapper.mapping.registration_lines import RegistrationLines, RegistrationLinesConfig
 from papl_mapper.mapping.relative_pose import RelativePoseConfig, register_relative
 from papl_mapper.mapping.revisit import (
@@ -94,9 +93,6 @@ class IncrementalConfig:
     """...and most any shared frame's rotation between the segments may differ from their mean."""
     merge_tolerance: float = 0.05
     """Largest point disagreement after the Sim(3), as a fraction of the map's median point spread."""
-    refind: RefindConfig = field(default_factory=RefindConfig)
-    """Map points found again at each new keyframe (search by projection) before new points are
-    triangulated there."""
     track_lines: RegistrationLinesConfig = field(default_factory=RegistrationLinesConfig)
     """Line tracks triangulated from the keyframes so far: they refine each frame's pose with the points
     (when enabled) and pose the frames points cannot (`pnp.from_lines`)."""
@@ -320,7 +316,6 @@ def _extend(
     use_lines = cfg.track_lines.enabled or cfg.pnp.from_lines.enabled
     lines = RegistrationLines(tracks, cfg.track_lines) if use_lines else None
     rows = PointRows(tracks)
-    refinder = Refinder(tracks, cfg.refind) if cfg.refind.enabled else None
     gate = RevisitGate(cfg.revisit)
     f = f1
     for f in range(f1 + 1, len(tracks)):
@@ -357,9 +352,8 @@ def _extend(
             reg.T_cw[f] = res.T_cw
             reg.frames.append(f)
             last_keyframe = f
-            refound = refinder.refind(rows, f, res.T_cw, reg.points_w, reg.poses()) if refinder else 0
             added = _triangulate_new(tracks, rows, reg, f, cfg)
-            log.debug("keyframe %d: %s, %d points found again, %d new", f, res.reason, refound, added)
+            log.debug("keyframe %d: %s, %d new points", f, res.reason, added)
             if index is not None and tracks.is_keyframe[f]:
                 rv = find_revisit(
                     tracks, reg.points_w, reg.T_cw, f, index, cfg.revisit, seed, reg.point_angle
