@@ -47,14 +47,12 @@ class PointTracker:
         self.ids = np.zeros(0, np.int64)
         self.uv = np.zeros((0, 2), np.float32)
         self.next_id = 0
-        self.frame = -1
         self.flow_from = np.zeros((0, 2), np.float32)  # survivors of the last step, before and after
         self.flow_to = np.zeros((0, 2), np.float32)
         self._orb = cv2.ORB_create(edgeThreshold=15, patchSize=15)
 
     def step(self, gray: np.ndarray, prev: np.ndarray | None, force_detect: bool = False) -> None:
         """Follow live tracks from gray image prev to gray; replenish corners where sparse."""
-        self.frame += 1
         motion = predict_flow(self.flow_from, self.flow_to) if self.flow.predict else None
         self.flow_from = self.flow_to = np.zeros((0, 2), np.float32)
         if prev is not None and len(self.ids):
