@@ -186,6 +186,24 @@ def test_temporary_vp_and_orthonormal_lines_converge(truth):
     assert err["ate_rmse"] < NOISE_FREE["ate_rmse"] and err["line_angle_deg"] < 0.5
 
 
+def test_orthonormal_lines_do_not_depend_on_the_world_origin(truth):
+    """Known answer: the same perturbed map moved 500 scene units from the world origin converges to the
+    same lines in about as many steps; orthonormal (U, W) taken in the world frame encode the distance from
+    the origin as cot(phi), and there many Gauss-Newton steps failed until the damping grew."""
+    m = perturb(truth, **START)
+    m.lines.state[:] = LineState.ORTHONORMAL
+    far = copy.deepcopy(m)
+    t = np.array([500.0, -300.0, 200.0])
+    far.keyframes.T_wc[:, :3, 3] += t
+    far.points.xyz += t
+    far.lines.endpoints_w += t
+    near_res, far_res = global_ba(m, _cfg()), global_ba(far, _cfg())
+    assert near_res.n_variables["lines_orthonormal"] == far_res.n_variables["lines_orthonormal"] > 10
+    far_res.map.lines.endpoints_w -= t
+    np.testing.assert_allclose(far_res.map.lines.endpoints_w, near_res.map.lines.endpoints_w, atol=1e-3)
+    assert far_res.iterations <= near_res.iterations + 1
+
+
 def test_two_parameter_baseline_holds_directions(truth):
     m = perturb(truth, **START)
     res = global_ba(m, _cfg(structural_lines="fixed_direction"))
@@ -320,7 +338,7 @@ def test_anchor_bearing_estimate_avoids_reference_observation_noise():
 
 REF_SHIFT_PX = 4.0  # every anchored line's reference observation moved this far across the segment
 OFFSET_MEDIAN_TOL = 0.15  # median Error_l with the offset (lines seen twice cannot tell which view is off)
-PAPER_BIAS = 3.0  # the paper's ray keeps the shifted observation: mean and median at least this much worse
+PAPER_BIAS = 2.5  # the paper's ray keeps the shifted observation: mean and median at least this much worse
 
 
 @pytest.mark.parametrize("poses", ["fixed", "noisy"])

@@ -120,6 +120,26 @@ def test_orthonormal_roundtrip_and_jacobian(rng):
     assert phi0 == pytest.approx(np.pi / 2)
 
 
+def test_line_frame_roundtrip_and_chain_jacobian(rng):
+    """A line far from the world origin, moved into its frame (origin near it, unit its distance): the
+    local line is at distance 1 (phi = 45 deg), maps back exactly, and local_to_world is dL_world/dL_local."""
+    L = g.normalize_plucker(g.plucker_from_point_dir(np.array([300.0, -40.0, 7.0]), rng.normal(size=3)))
+    centre = np.array([302.0, -38.0, 5.0])
+    origin, scale = g.line_frame(L, centre)
+    L_loc = g.plucker_to_local(L, origin, scale)
+    assert np.linalg.norm(L_loc[:3]) / np.linalg.norm(L_loc[3:]) == pytest.approx(1.0)
+    np.testing.assert_allclose(g.local_to_world(origin, scale) @ L_loc, L, atol=1e-9)
+    U, phi = g.ortho_from_plucker(L_loc)
+    assert phi == pytest.approx(np.pi / 4)
+    M = g.local_to_world(origin, scale)
+
+    def f(delta):
+        U2, p2 = g.ortho_retract(U, phi, delta)
+        return M @ g.plucker_from_ortho(U2, p2)
+
+    assert_jac(M @ g.ortho_jacobian(U, phi), num_jac(f, np.zeros(4)))
+
+
 def test_anchored_roundtrip_and_jacobians(rng):
     T_wr = random_pose(rng)
     ends = g.transform(T_wr, np.array([[-1.0, 0.2, 4.0], [1.0, 0.4, 5.0]]))

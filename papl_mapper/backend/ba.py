@@ -22,7 +22,7 @@ import gtsam
 import numpy as np
 
 from papl_mapper import geometry as geo
-from papl_mapper.backend.config import BAConfig
+from papl_mapper.backend.config import BAConfig, min_parallax_deg
 from papl_mapper.backend.factors import (
     AX,
     RS,
@@ -240,7 +240,9 @@ def _build_graph(m: Map, pb: Problem, config: BAConfig, hold_rotations: bool = F
             if kind == KIND_FIXDIR:
                 values.insert(F(i), np.zeros(2))
             elif kind == KIND_ORTHO:
-                Urot, phi = geo.ortho_from_plucker(grp.L0[i])
+                Urot, phi = geo.ortho_from_plucker(
+                    geo.plucker_to_local(grp.L0[i], grp.frame_origin[i], grp.frame_scale[i])
+                )
                 values.insert(U(i), gtsam.Rot3(Urot))
                 values.insert(W(i), np.array([phi]))
             else:
@@ -305,7 +307,8 @@ def _state(
             inv[kind], _ = geo.ray_inverse_depth(grp.bearing, T[grp.ref_kf], L)
         elif kind == KIND_ORTHO:
             L = [
-                geo.plucker_from_ortho(values.atRot3(U(i)).matrix(), np.asarray(values.atVector(W(i))[0]))
+                geo.local_to_world(grp.frame_origin[i], grp.frame_scale[i])
+                @ geo.plucker_from_ortho(values.atRot3(U(i)).matrix(), np.asarray(values.atVector(W(i))[0]))
                 for i in range(n)
             ]
         else:
@@ -496,9 +499,10 @@ def _write_back(m: Map, pb: Problem, st: _State, config: BAConfig | None = None)
             L[bad] = geo.normalize_plucker(geo.plucker_from_endpoints(e0[:, 0], e0[:, 1]))
         owner = np.repeat(np.arange(len(grp)), np.diff(grp.obs_start))
         flat = np.zeros(len(grp), bool)
-        if config.min_line_parallax_deg > 0:
+        need = float(min_parallax_deg(config, kind == KIND_ORTHO))
+        if need > 0:
             par = line_parallax_deg(L, owner, st.T[grp.obs_kf, :3, 3], len(grp))
-            flat = par < config.min_line_parallax_deg
+            flat = par < need
             flat &= ~bad
             if flat.any():
                 log.info(
@@ -506,7 +510,7 @@ def _write_back(m: Map, pb: Problem, st: _State, config: BAConfig | None = None)
                     "kept as they were",
                     int(flat.sum()),
                     kind,
-                    config.min_line_parallax_deg,
+                    need,
                 )
                 pb.dropped["lines_low_parallax_after_ba"] = pb.dropped.get(
                     "lines_low_parallax_after_ba", 0

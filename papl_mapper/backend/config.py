@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
+
 
 @dataclass
 class BAConfig:
@@ -37,6 +39,11 @@ class BAConfig:
     points need a triangulation angle): before BA such lines (judged on their start geometry) are left out
     and kept unchanged; after BA a line that became so (e.g. driven hundreds of scene sizes away) keeps its
     input geometry; both counted in BAResult.dropped. Same rule for every line representation; 0 = off."""
+    min_orthonormal_parallax_deg: float = 1.0
+    """The same rule for orthonormal lines, at least this angle whatever min_line_parallax_deg says: with
+    a free direction and no observable depth such a line has near-null directions whose Gauss-Newton steps
+    (radians of U and W) fail the whole Levenberg-Marquardt step until the damping grows; a line anchored
+    to an axis keeps its direction and still holds the cameras' rotation, so it is not held to this."""
     axis_prior_sigma_deg: float = 2.0
     """The paper's axis error e_a: how far (1 sigma) an axis may move from its value before BA."""
     min_axis_weight: float = 0.1
@@ -75,3 +82,13 @@ class BAConfig:
     """Monocular gauge: relative sigma of the prior holding the distance between the two gauge keyframes.
     The data carry no scale, so the optimum meets the prior exactly whatever its sigma; a stiff sigma
     (1e-4) made Levenberg-Marquardt stall on pose-noise starts (measured), 1e-2 does not."""
+
+
+def min_parallax_deg(config: BAConfig, orthonormal: np.ndarray | bool) -> np.ndarray | float:
+    """The parallax a line needs to enter (and to leave) BA: min_line_parallax_deg, raised to
+    min_orthonormal_parallax_deg for orthonormal lines."""
+    return np.where(
+        orthonormal,
+        max(config.min_line_parallax_deg, config.min_orthonormal_parallax_deg),
+        config.min_line_parallax_deg,
+    )

@@ -51,6 +51,8 @@ class LineBatch:
         if kind == KIND_FIXDIR:  # direction (its axis at the start) and reference point per line, held fixed
             self.P0, self.d = geo.line_point_dir(grp.L0)
             self.Bd = geo.tangent_basis(self.d)
+        if kind == KIND_ORTHO:  # (U, W) of line i describe it in its own frame (problem.LineGroup)
+            self.to_world = geo.local_to_world(grp.frame_origin, grp.frame_scale)
         self.snap: dict | None = None
         self.has_jac = False
         self.n_evaluations = 0
@@ -250,8 +252,9 @@ class LineBatch:
             L, J_par = self.lines_from(snap["ab"], line, jac)
         elif kind == KIND_ORTHO:
             Uu, phi = snap["U"][line], snap["s"][line]
-            L = geo.plucker_from_ortho(Uu, phi)
-            J_par = geo.ortho_jacobian(Uu, phi) if jac else None
+            M = self.to_world[line]
+            L = np.einsum("nij,nj->ni", M, geo.plucker_from_ortho(Uu, phi))
+            J_par = M @ geo.ortho_jacobian(Uu, phi) if jac else None
         else:
             vi = line if kind == KIND_TVP else self.u_axis
             if self.offset:

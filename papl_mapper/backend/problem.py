@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from papl_mapper import geometry as geo
-from papl_mapper.backend.config import BAConfig
+from papl_mapper.backend.config import BAConfig, min_parallax_deg
 from papl_mapper.errors import GeometryError
 from papl_mapper.geometry.lines import line_parallax_deg
 from papl_mapper.map import LineState, Map
@@ -38,6 +38,8 @@ class LineGroup:
     weights: np.ndarray  # (n, A) axis weights in the graph (anchored), zeros otherwise
     offset_dir: np.ndarray  # (n, 3) sideways anchor direction q (z = 0; BAConfig.anchor_offset), else zeros
     obs_bearing: np.ndarray  # (n, 3) bearing of the observed segment midpoint in the reference keyframe
+    frame_origin: np.ndarray  # (n, 3) orthonormal lines: origin of the frame their (U, W) live in, else zeros
+    frame_scale: np.ndarray  # (n,) orthonormal lines: that frame's unit (geometry.line_frame), else ones
 
     @classmethod
     def empty(cls, n_axes: int) -> LineGroup:
@@ -54,6 +56,8 @@ class LineGroup:
             np.zeros((0, n_axes)),
             np.zeros((0, 3)),
             np.zeros((0, 3)),
+            np.zeros((0, 3)),
+            np.zeros(0),
         )
 
     def __len__(self) -> int:
@@ -279,17 +283,19 @@ def _build_lines(
         ((views < config.min_views) & ~bad_len).sum(),
         f"seen from fewer than {config.min_views} keyframes",
     )
-    if config.min_line_parallax_deg > 0 and len(o_row):
+    need = min_parallax_deg(config, kind == 0)
+    if (need > 0).any() and len(o_row):
         # as points need a triangulation angle: lines whose observing centres span too small an angle about
         # their start geometry have no observable depth (e.g. walked along); each representation judges its
         # own start line (anchored: the axis direction through the midpoint)
         par = line_parallax_deg(geo.normalize_plucker(L0), o_row, T[o_kf, :3, 3], M)
-        flat = line_keep & (par < config.min_line_parallax_deg)
+        flat = line_keep & (par < need)
         _drop(
             dropped,
             "lines_low_parallax",
             flat.sum(),
-            f"cameras span < {config.min_line_parallax_deg} deg about the line (depth unobservable)",
+            "observing cameras span too small an angle about the line (depth unobservable; "
+            "BAConfig.min_line_parallax_deg, min_orthonormal_parallax_deg)",
         )
         line_keep &= ~flat
     if in_window is not None:
@@ -362,6 +368,12 @@ def _build_lines(
         local = np.searchsorted(rows, r_sel)
         counts = np.bincount(local, minlength=len(rows))
         start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        L0_rows = geo.normalize_plucker(L0[rows])
+        origin, scale = np.zeros((len(rows), 3)), np.ones(len(rows))
+        if code == 0 and len(rows):  # orthonormal lines live in a frame at their cameras' mean centre
+            centre = np.zeros((len(rows), 3))
+            np.add.at(centre, local, T[kf_sel, :3, 3])
+            origin, scale = geo.line_frame(L0_rows, centre / np.maximum(counts, 1)[:, None])
         groups[name] = LineGroup(
             rows=rows,
             obs_start=start,
@@ -370,10 +382,12 @@ def _build_lines(
             ref_kf=ref[rows] if code else np.full(len(rows), -1, np.int64),
             bearing=bearing[rows],
             inv_depth=inv[rows],
-            L0=geo.normalize_plucker(L0[rows]),
+            L0=L0_rows,
             weights=w[rows] if A else np.zeros((len(rows), 0)),
             offset_dir=q[rows],
             obs_bearing=obs_bearing[rows],
+            frame_origin=origin,
+            frame_scale=scale,
         )
     axis_used = (groups[KIND_ANCHORED].weights > 0).any(axis=0) if A else np.zeros(0, bool)
     return groups, axis_used

@@ -192,6 +192,34 @@ def ortho_jacobian(U: np.ndarray, phi: np.ndarray) -> np.ndarray:
     return J
 
 
+def plucker_to_local(L: np.ndarray, origin: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(..., 6) world Pluecker -> the same line in the frame X_local = (X - origin) / scale."""
+    n, v = L[..., :3], L[..., 3:]
+    return np.concatenate([(n - np.cross(origin, v)) / np.asarray(scale)[..., None], v], -1)
+
+
+def local_to_world(origin: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(..., 6, 6) linear map taking Pluecker coordinates in that frame back to the world:
+    n = scale n_local + origin x v, v = v_local (so it is also d L_world / d L_local)."""
+    origin = np.asarray(origin, np.float64)
+    M = np.zeros(origin.shape[:-1] + (6, 6))
+    M[..., :3, :3] = np.asarray(scale)[..., None, None] * np.eye(3)
+    M[..., :3, 3:] = skew(origin)
+    M[..., 3:, 3:] = np.eye(3)
+    return M
+
+
+def line_frame(L: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A frame for a line's orthonormal coordinates: origin `centre` (e.g. its cameras' mean centre) and
+    unit its distance from the line, so the local line is at distance 1 (phi = 45 deg). In the world
+    frame cot(phi) is the distance from the world origin: for a line tens of units away a step of
+    0.01 rad in phi moves it by metres, and a Gauss-Newton step on such lines fails unless heavily
+    damped; in this frame a step moves the line in proportion to its distance from the cameras."""
+    d = np.linalg.norm(plucker_to_local(L, centre, np.ones(L.shape[:-1]))[..., :3], axis=-1)
+    d /= np.linalg.norm(L[..., 3:], axis=-1)
+    return centre, np.where(d > 1e-12, d, 1.0)
+
+
 def ortho_retract(U: np.ndarray, phi: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The minimal 4-dof update: (U @ Exp(delta[:3]), phi + delta[3])."""
     return U @ so3_exp(delta[..., :3]), phi + delta[..., 3]
