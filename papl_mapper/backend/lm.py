@@ -5,11 +5,9 @@ CustomFactor, pybind11 copies the optimizer's (C++-owned) Values into a new Pyth
 call, so each of thousands of line factors pays a copy of all variables: several times slower per
 Gauss-Newton iteration than the same linearise + solve + retract + error driven from Python, and growing
 quadratically with size (this driver's steps are timed in benchmarks/RESULTS.md, ba_scale). Here the
-Values stay Python-owned, so callbacks receive the existing object. Damping lambda * I is added as
-prior factors, as gtsam's LM does; lambda follows Nielsen's rule (as Ceres): after an accepted step it
-scales by max(1/3, 1 - (2 rho - 1)^3), rho = actual / predicted decrease of the cost, and after a
-rejected one it grows by nu, which doubles with each rejection in a row. gtsam's divide-by-10 after
-every accepted step drove lambda down until every other step was rejected on maps with lines.
+Values stay Python-owned, so callbacks receive the existing object. The algorithm is gtsam's: damping
+lambda * I added as prior factors, lambda divided by `lambda_factor` after an accepted step and
+multiplied after a rejected one.
 """
 
 from __future__ import annotations
@@ -29,6 +27,7 @@ class LevenbergMarquardt:
         graph: gtsam.NonlinearFactorGraph,
         values: gtsam.Values,
         lambda_initial: float = 1e-4,
+        lambda_factor: float = 10.0,
         lambda_max: float = 1e10,
         lambda_min: float = 1e-9,
         error: Callable[[gtsam.Values], float] | None = None,
@@ -38,7 +37,7 @@ class LevenbergMarquardt:
         self.values = values
         self.cost = error if error is not None else lambda v: float(graph.error(v))
         self.lam = lambda_initial
-        self.nu = 2.0
+        self.factor = lambda_factor
         self.lam_max = lambda_max
         self.lam_min = lambda_min
         self.error = self.cost(values)
@@ -46,6 +45,7 @@ class LevenbergMarquardt:
         self.keys = list(values.keys())
         self.dims = [len(zero.at(k)) for k in self.keys]
         self.ordering: gtsam.Ordering | None = None
+        self._damping_cache: dict[float, gtsam.GaussianFactorGraph] = {}
         self.linearize_s = 0.0
         self.solve_s = 0.0
         self.error_s = 0.0
@@ -53,12 +53,19 @@ class LevenbergMarquardt:
         self.n_solve = 0
 
     def _damping(self, lam: float) -> gtsam.GaussianFactorGraph:
-        """The prior factors sqrt(lam) * I on every variable."""
+        """The prior factors sqrt(lam) * I on every variable; the last two lambdas' are kept (lambda
+        moves by powers of `lambda_factor`, so one problem meets the same few values again and again)."""
+        damp = self._damping_cache.get(lam)
+        if damp is not None:
+            return damp
         damp = gtsam.GaussianFactorGraph()
         s = np.sqrt(lam)
         units = {d: (s * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)) for d in set(self.dims)}
         for key, d in zip(self.keys, self.dims, strict=True):
             damp.push_back(gtsam.JacobianFactor(key, *units[d]))
+        if len(self._damping_cache) >= 2:
+            self._damping_cache.pop(next(iter(self._damping_cache)))
+        self._damping_cache[lam] = damp
         return damp
 
     def iterate(self) -> bool:
@@ -70,7 +77,6 @@ class LevenbergMarquardt:
         self.n_linearize += 1
         if self.ordering is None:
             self.ordering = gtsam.Ordering.Colamd(gtsam.VariableIndex(lin))
-        model_at_zero = lin.error(self.values.zeroVectors())  # the linear model's cost at delta = 0
         while True:
             t = time.perf_counter()
             damped = gtsam.GaussianFactorGraph()
@@ -89,15 +95,11 @@ class LevenbergMarquardt:
                 t = time.perf_counter()
                 new_values = self.values.retract(delta)
                 new_error = self.cost(new_values)
-                predicted = model_at_zero - lin.error(delta)
                 self.error_s += time.perf_counter() - t
             if np.isfinite(new_error) and new_error < self.error:
-                rho = (self.error - new_error) / predicted if predicted > 0 else 1.0
                 self.values, self.error = new_values, new_error
-                self.lam = max(self.lam * max(1 / 3, 1 - (2 * rho - 1) ** 3), self.lam_min)
-                self.nu = 2.0
+                self.lam = max(self.lam / self.factor, self.lam_min)
                 return True
-            self.lam *= self.nu
-            self.nu *= 2.0
+            self.lam *= self.factor
             if self.lam > self.lam_max:
                 return False
