@@ -178,6 +178,7 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
             ],
             "accuracy_final_completion.json": [SEEDED_ACCURACY_ROWS],
             "accuracy_frames.json": [SEEDED_ACCURACY_ROWS],
+            "accuracy_video.json": [SEEDED_ACCURACY_ROWS],
             **{
                 name: [
                     Rows(
