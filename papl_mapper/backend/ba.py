@@ -306,11 +306,9 @@ def _state(
             L, _ = batches[KIND_FIXDIR].lines_from(ab, np.arange(n))
             inv[kind], _ = geo.ray_inverse_depth(grp.bearing, T[grp.ref_kf], L)
         elif kind == KIND_ORTHO:
-            L = [
-                geo.local_to_world(grp.frame_origin[i], grp.frame_scale[i])
-                @ geo.plucker_from_ortho(values.atRot3(U(i)).matrix(), np.asarray(values.atVector(W(i))[0]))
-                for i in range(n)
-            ]
+            Us = np.array([values.atRot3(U(i)).matrix() for i in range(n)]).reshape(n, 3, 3)
+            phi = np.array([values.atVector(W(i))[0] for i in range(n)])
+            L = geo.plucker_from_ortho(Us, phi, geo.local_to_world(grp.frame_origin, grp.frame_scale))
         else:
             if kind == KIND_TVP:
                 v = np.array([values.atUnit3(D(i)).point3() for i in range(n)]).reshape(-1, 3)

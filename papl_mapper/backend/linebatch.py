@@ -253,8 +253,8 @@ class LineBatch:
         elif kind == KIND_ORTHO:
             Uu, phi = snap["U"][line], snap["s"][line]
             M = self.to_world[line]
-            L = np.einsum("nij,nj->ni", M, geo.plucker_from_ortho(Uu, phi))
-            J_par = M @ geo.ortho_jacobian(Uu, phi) if jac else None
+            L = geo.plucker_from_ortho(Uu, phi, M)
+            J_par = geo.ortho_jacobian(Uu, phi, M) if jac else None
         else:
             vi = line if kind == KIND_TVP else self.u_axis
             if self.offset:

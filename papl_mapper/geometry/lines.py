@@ -173,15 +173,20 @@ def ortho_from_plucker(L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return U, phi
 
 
-def plucker_from_ortho(U: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """U, phi -> (..., 6) Pluecker (cos phi u1, sin phi u2), i.e. distance from origin = cot phi."""
+def plucker_from_ortho(U: np.ndarray, phi: np.ndarray, to_world: np.ndarray | None = None) -> np.ndarray:
+    """U, phi -> (..., 6) Pluecker (cos phi u1, sin phi u2), i.e. distance from origin = cot phi; with
+    `to_world` (..., 6, 6, `local_to_world`) U, phi describe the line in that frame."""
     c = np.cos(phi)[..., None]
     s = np.sin(phi)[..., None]
-    return np.concatenate([c * U[..., :, 0], s * U[..., :, 1]], -1)
+    L = np.concatenate([c * U[..., :, 0], s * U[..., :, 1]], -1)
+    return L if to_world is None else np.einsum("...ij,...j->...i", to_world, L)
 
 
-def ortho_jacobian(U: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """d L / d (delta_psi, delta_phi) (..., 6, 4) for the update U @ Exp(delta_psi), phi + delta_phi."""
+def ortho_jacobian(U: np.ndarray, phi: np.ndarray, to_world: np.ndarray | None = None) -> np.ndarray:
+    """d L / d (delta_psi, delta_phi) (..., 6, 4) for the update U @ Exp(delta_psi), phi + delta_phi
+    (of the world line when `to_world` is given, as for plucker_from_ortho)."""
+    if to_world is not None:
+        return to_world @ ortho_jacobian(U, phi)
     c = np.cos(phi)[..., None, None]
     s = np.sin(phi)[..., None, None]
     J = np.zeros(np.shape(phi) + (6, 4))
