@@ -385,3 +385,30 @@ def test_line_driven_to_infinity_keeps_its_geometry(truth):
         )
         < 1e-9
     )
+
+
+def test_lm_meets_each_damping_as_one_float_and_solves_rosenbrock():
+    """The driver's damping is lambda_initial * factor ** power: after steps down and up it is the very
+    same float again, so every damping met is built once (one cached graph per power visited), and the
+    driver still reaches the minimum of a curved problem that needs rejected steps (Rosenbrock)."""
+    from papl_mapper.backend.lm import LevenbergMarquardt
+
+    def rosenbrock(this, values, H):
+        x = values.atVector(0)
+        if H is not None:
+            H[0] = np.array([[-20.0 * x[0], 10.0], [-1.0, 0.0]])
+        return np.array([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]])
+
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2), [0], rosenbrock))
+    values = gtsam.Values()
+    values.insert(0, np.array([-1.2, 1.0]))
+    lm = LevenbergMarquardt(graph, values, lambda_initial=1e-4)
+    for _ in range(200):
+        if not lm.iterate() or lm.error < 1e-24:
+            break
+    np.testing.assert_allclose(lm.values.atVector(0), [1.0, 1.0], atol=1e-8)
+    assert lm.n_solve > lm.n_linearize  # some steps were rejected and damped more
+    powers = [round(np.log10(lam / 1e-4)) for lam in lm._damping_cache]
+    assert len(set(powers)) == len(powers) >= 3  # one float per power, several powers met
+    assert all(lam == 1e-4 * 10.0**p for lam, p in zip(lm._damping_cache, powers, strict=True))

@@ -6,8 +6,8 @@ call, so each of thousands of line factors pays a copy of all variables: several
 Gauss-Newton iteration than the same linearise + solve + retract + error driven from Python, and growing
 quadratically with size (this driver's steps are timed in benchmarks/RESULTS.md, ba_scale). Here the
 Values stay Python-owned, so callbacks receive the existing object. The algorithm is gtsam's: damping
-lambda * I added as prior factors, lambda divided by `lambda_factor` after an accepted step and
-multiplied after a rejected one.
+lambda * I added as prior factors, lambda divided by `lambda_factor` after an accepted step (not below
+`lambda_min`) and multiplied after a rejected one.
 """
 
 from __future__ import annotations
@@ -36,7 +36,10 @@ class LevenbergMarquardt:
         self.graph = graph
         self.values = values
         self.cost = error if error is not None else lambda v: float(graph.error(v))
-        self.lam = lambda_initial
+        # lambda = lambda_initial * lambda_factor ** power: an integer power, so that each damping met
+        # again is the same float (a cache key), not one drifted by repeated products
+        self.lam_initial = lambda_initial
+        self.power = 0
         self.factor = lambda_factor
         self.lam_max = lambda_max
         self.lam_min = lambda_min
@@ -52,9 +55,15 @@ class LevenbergMarquardt:
         self.n_linearize = 0
         self.n_solve = 0
 
+    @property
+    def lam(self) -> float:
+        """The current damping."""
+        return self.lam_initial * self.factor**self.power
+
     def _damping(self, lam: float) -> gtsam.GaussianFactorGraph:
-        """The prior factors sqrt(lam) * I on every variable; the last two lambdas' are kept (lambda
-        moves by powers of `lambda_factor`, so one problem meets the same few values again and again)."""
+        """The prior factors sqrt(lam) * I on every variable, built once per lambda: lambda moves by
+        powers of `lambda_factor` between its bounds, so one problem meets a few tens of values at most,
+        each again and again, and building the factors costs about a tenth of a solve."""
         damp = self._damping_cache.get(lam)
         if damp is not None:
             return damp
@@ -63,8 +72,6 @@ class LevenbergMarquardt:
         units = {d: (s * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)) for d in set(self.dims)}
         for key, d in zip(self.keys, self.dims, strict=True):
             damp.push_back(gtsam.JacobianFactor(key, *units[d]))
-        if len(self._damping_cache) >= 2:
-            self._damping_cache.pop(next(iter(self._damping_cache)))
         self._damping_cache[lam] = damp
         return damp
 
@@ -98,8 +105,9 @@ class LevenbergMarquardt:
                 self.error_s += time.perf_counter() - t
             if np.isfinite(new_error) and new_error < self.error:
                 self.values, self.error = new_values, new_error
-                self.lam = max(self.lam / self.factor, self.lam_min)
+                if self.lam / self.factor >= self.lam_min:
+                    self.power -= 1
                 return True
-            self.lam *= self.factor
+            self.power += 1
             if self.lam > self.lam_max:
                 return False
