@@ -387,12 +387,7 @@ def test_line_driven_to_infinity_keeps_its_geometry(truth):
     )
 
 
-def test_lm_meets_each_damping_as_one_float_and_solves_rosenbrock():
-    """The driver's damping is lambda_initial * factor ** power: after steps down and up it is the very
-    same float again, so every damping met is built once (one cached graph per power visited), and the
-    driver still reaches the minimum of a curved problem that needs rejected steps (Rosenbrock)."""
-    from papl_mapper.backend.lm import LevenbergMarquardt
-
+def _rosenbrock_graph():
     def rosenbrock(this, values, H):
         x = values.atVector(0)
         if H is not None:
@@ -401,9 +396,32 @@ def test_lm_meets_each_damping_as_one_float_and_solves_rosenbrock():
 
     graph = gtsam.NonlinearFactorGraph()
     graph.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2), [0], rosenbrock))
+    return graph
+
+
+def test_lm_stops_at_once_where_no_step_could_gain_the_tolerance():
+    """Near a minimum, a rejected step whose linear model gains under relative_tol of the cost ends the
+    search after that one solve; without the rule the damping climbs to its maximum, one solve a step."""
+    from papl_mapper.backend.lm import LevenbergMarquardt
+
+    values = gtsam.Values()
+    values.insert(0, np.array([1.0, 1.0]))  # the minimum: no step gains anything
+    quick = LevenbergMarquardt(_rosenbrock_graph(), values, relative_tol=1e-3)
+    slow = LevenbergMarquardt(_rosenbrock_graph(), values)
+    assert quick.iterate() is False and slow.iterate() is False
+    assert quick.n_solve == 1 and quick.n_model_stops == 1
+    assert slow.n_solve >= 10 and slow.n_model_stops == 0
+
+
+def test_lm_meets_each_damping_as_one_float_and_solves_rosenbrock():
+    """The driver's damping is lambda_initial * factor ** power: after steps down and up it is the very
+    same float again, so every damping met is built once (one cached graph per power visited), and the
+    driver still reaches the minimum of a curved problem that needs rejected steps (Rosenbrock)."""
+    from papl_mapper.backend.lm import LevenbergMarquardt
+
     values = gtsam.Values()
     values.insert(0, np.array([-1.2, 1.0]))
-    lm = LevenbergMarquardt(graph, values, lambda_initial=1e-4)
+    lm = LevenbergMarquardt(_rosenbrock_graph(), values, lambda_initial=1e-4)
     for _ in range(200):
         if not lm.iterate() or lm.error < 1e-24:
             break

@@ -267,6 +267,23 @@ def test_triangulate_points(rng):
     assert not ok.any()
 
 
+def test_a_point_on_a_camera_centre_is_refused():
+    """Camera A looks through camera B's centre: its ray and B's meet just off B's centre, whatever B saw,
+    with no reprojection error in either view and a wide angle between the observed rays. The midpoint is
+    there; it is refused (a point that near B's centre would leave a BA indeterminate), a real point seen
+    by the same cameras is not."""
+    T = np.stack([np.eye(4), g.make_T(np.eye(3), [0.1, 0.0, 1.0])])
+    ray_b = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])
+    X_bad = T[1, :3, 3] + 1e-4 * ray_b
+    X_good = np.array([2.0, 0.5, 3.0])
+    idx = np.array([0, 0, 1, 1])
+    uv, _ = g.project_points(K, T[[0, 1, 0, 1]], np.stack([X_bad, X_bad, X_good, X_good]))
+    Xh, ok = g.triangulate_points(idx, T[[0, 1, 0, 1]], K, uv, 2)
+    np.testing.assert_allclose(Xh[0], X_bad, atol=1e-9)
+    assert g.max_reprojection_px(idx, np.linalg.inv(T[[0, 1, 0, 1]]), K, uv, Xh)[0] < 1e-6
+    assert ok.tolist() == [False, True]
+
+
 def test_anchor_from_observation_meets_the_line(rng):
     T_wr = random_pose(rng)
     ends_c = np.array([[-1.0, 0.2, 4.0], [1.0, 0.4, 5.0]])

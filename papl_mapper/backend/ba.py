@@ -407,7 +407,9 @@ def _run(
     history = [initial_cost]
     iteration_s: list[float] = []
     iteration_cpu_s: list[float] = []
-    optimizer = LevenbergMarquardt(g.graph, g.values, config.lambda_initial, error=g.error)
+    optimizer = LevenbergMarquardt(
+        g.graph, g.values, config.lambda_initial, error=g.error, relative_tol=config.relative_error_tol
+    )
     converged = _lm_stage(optimizer, config, progress, history, iteration_s, iteration_cpu_s)
     cost = optimizer.error
     time_s = time.perf_counter() - t0

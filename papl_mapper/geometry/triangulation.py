@@ -6,6 +6,10 @@ import numpy as np
 
 from papl_mapper.geometry.lines import plucker_from_homogeneous_points
 
+MIN_DEPTH_FRACTION = 0.01
+"""A triangulated point's depth in each of its cameras must exceed this fraction of its distance from the
+farthest of them (the rays of a real point that near one camera would barely reach the others')."""
+
 
 def triangulate_points(
     point_index: np.ndarray,
@@ -19,7 +23,7 @@ def triangulate_points(
 
     point_index (K,) which point each observation belongs to; T_wc (K, 4, 4), uv (K, 2) pixels.
     Returns X (P, 3) and ok (P,): False with fewer than two rays, a ray parallax below `min_angle_deg`,
-    or a point behind any of its cameras.
+    or a point behind any of its cameras or on one's centre (MIN_DEPTH_FRACTION).
     """
     rays_c = np.concatenate([uv, np.ones((len(uv), 1))], 1) @ np.linalg.inv(K).T
     rays = np.einsum("kij,kj->ki", T_wc[:, :3, :3], rays_c)
@@ -43,9 +47,23 @@ def triangulate_points(
     X = np.linalg.solve(A, b[..., None])[..., 0]
     depth = np.sum((X[point_index] - C) * rays, axis=1)
     in_front = np.ones(n_points, bool)
-    np.logical_and.at(in_front, point_index, depth > 0)
+    np.logical_and.at(in_front, point_index, clear_of_camera(point_index, X, C, depth))
     ok &= in_front & np.isfinite(X).all(axis=1)
     return X, ok
+
+
+def clear_of_camera(point_index: np.ndarray, X: np.ndarray, C: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """(K,) whether each observation's point lies in front of its camera and off its centre: depth above
+    MIN_DEPTH_FRACTION of the point's distance from the farthest of its cameras.
+
+    Where one camera's ray passes through another's centre, the rays meet there (a midpoint, or a bundle
+    adjustment sliding a two-view point there, fits both views exactly), whatever the second camera saw;
+    and a point that near a centre projects with f / depth pixels per unit, which leaves a bundle
+    adjustment's linear system indeterminate. point_index (K,) rows of X (P, 3); C (K, 3) the observing
+    camera centres; depth (K,) the point's depth in each."""
+    farthest = np.zeros(len(X))
+    np.maximum.at(farthest, point_index, np.linalg.norm(X[point_index] - C, axis=1))
+    return depth > MIN_DEPTH_FRACTION * farthest[point_index]
 
 
 def max_reprojection_px(

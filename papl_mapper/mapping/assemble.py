@@ -11,7 +11,7 @@ import numpy as np
 from papl_mapper.errors import GeometryError
 from papl_mapper.geometry.lines import endpoint_errors, plucker_from_endpoints, plucker_to_camera
 from papl_mapper.geometry.se3 import project_points
-from papl_mapper.geometry.triangulation import observation_planes
+from papl_mapper.geometry.triangulation import clear_of_camera, observation_planes
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
 from papl_mapper.mapping.lines import LineEstimates
 from papl_mapper.tracks import Tracks
@@ -195,7 +195,8 @@ def transform_map(m: Map, R: np.ndarray, t: np.ndarray | None = None, scale: flo
 def cull_observations(
     m: Map, max_point_px: float, max_line_px: float, min_views: int = 2, min_line_views: int = 2
 ) -> dict[str, int]:
-    """Drop outlier observations (in place): reprojection error over the limits or behind the camera.
+    """Drop outlier observations (in place): reprojection error over the limits, or a point behind the
+    camera or on its centre (`geometry.triangulation.clear_of_camera`).
 
     Points left with fewer than `min_views` distinct keyframes, and lines with fewer than
     `min_line_views`, are removed with their observations, so bundle adjustment never sees an
@@ -211,7 +212,8 @@ def cull_observations(
         rows = np.searchsorted(pts.ids, pts.obs_ids[:, 0])
         kfs = np.array([kf_row[int(k)] for k in pts.obs_ids[:, 1]])
         uv, z = project_points(K, T[kfs], pts.xyz[rows])
-        ok = (z > 0) & (np.linalg.norm(uv - pts.obs_uv, axis=1) <= max_point_px)
+        ok = clear_of_camera(rows, pts.xyz, T[kfs, :3, 3], z)
+        ok &= np.linalg.norm(uv - pts.obs_uv, axis=1) <= max_point_px
         counts["point_observations"] = int((~ok).sum())
         pts.obs_ids, pts.obs_uv = pts.obs_ids[ok], pts.obs_uv[ok]
     keep = _views(pts.ids, pts.obs_ids) >= min_views
