@@ -7,7 +7,8 @@ Gauss-Newton iteration than the same linearise + solve + retract + error driven 
 quadratically with size (this driver's steps are timed in benchmarks/RESULTS.md, ba_scale). Here the
 Values stay Python-owned, so callbacks receive the existing object. The algorithm is gtsam's: damping
 lambda * I added as prior factors, lambda divided by `lambda_factor` after an accepted step (not below
-`lambda_min`) and multiplied after a rejected one.
+`lambda_min`) and multiplied after a rejected one; with `relative_tol` the search for an acceptable step
+also ends once the linear model itself promises less than the caller's convergence test asks for.
 """
 
 from __future__ import annotations
