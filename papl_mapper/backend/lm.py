@@ -49,10 +49,9 @@ class LevenbergMarquardt:
         self.lam_min = lambda_min
         self.relative_tol = relative_tol
         self.error = self.cost(values)
-        zero = values.zeroVectors()
-        self._zero = zero
+        self._zero = values.zeroVectors()
         self.keys = list(values.keys())
-        self.dims = [len(zero.at(k)) for k in self.keys]
+        self.dims = [len(self._zero.at(k)) for k in self.keys]
         self.ordering: gtsam.Ordering | None = None
         self._damping_cache: dict[float, gtsam.GaussianFactorGraph] = {}
         self.linearize_s = 0.0
