@@ -289,6 +289,27 @@ def test_degenerate_observations_and_lines_are_dropped_with_reason(truth, caplog
     assert np.isfinite(res.map.lines.endpoints_w).all()
 
 
+def test_a_point_on_a_camera_centre_is_left_out(truth):
+    """A map given to BA directly is held to the triangulation's rule: an observation whose point sits
+    just in front of its camera's centre (where that camera's ray meets any other, whatever they saw,
+    and moves f / depth pixels per unit) is left out with its reason; the point's other views and the
+    rest of the map are adjusted as before."""
+    m = copy.deepcopy(truth)
+    kf = m.keyframes.ids[1]
+    row = int(np.flatnonzero(np.isin(m.points.ids, m.points.obs_ids[m.points.obs_ids[:, 1] == kf, 0]))[0])
+    T = m.keyframes.T_wc[1]
+    m.points.xyz[row] = T[:3, 3] + 1e-4 * T[:3, 2]  # 1e-4 ahead of the centre, on the optical axis
+    views = m.keyframes.T_wc[
+        np.isin(m.keyframes.ids, m.points.obs_ids[m.points.obs_ids[:, 0] == m.points.ids[row], 1])
+    ]
+    _, z = geo.project_points(m.camera.K, views, np.repeat(m.points.xyz[row : row + 1], len(views), axis=0))
+    behind = int((z <= 0).sum())  # views that now see it from behind, dropped by either rule
+    assert build_problem(m, _cfg()).dropped.get("point_observations", 0) == behind + 1
+    assert "point_observations" not in build_problem(truth, _cfg()).dropped
+    res = global_ba(perturb(m, **START), _cfg())
+    _assert_within(errors(res.map, truth), {"ate_rmse": NOISE_FREE["ate_rmse"]})
+
+
 def test_axis_with_one_line_is_held_fixed(truth):
     m = perturb(truth, **START)
     on_axis2 = np.flatnonzero(m.lines.axis_weights[:, 2] > 0)

@@ -14,6 +14,7 @@ from papl_mapper import geometry as geo
 from papl_mapper.backend.config import BAConfig, min_parallax_deg
 from papl_mapper.errors import GeometryError
 from papl_mapper.geometry.lines import line_parallax_deg
+from papl_mapper.geometry.triangulation import clear_of_camera
 from papl_mapper.map import LineState, Map
 
 log = logging.getLogger(__name__)
@@ -125,8 +126,8 @@ def build_problem(m: Map, config: BAConfig, window: np.ndarray | None = None) ->
     p_uv = m.points.obs_uv
     if len(p_obs):
         _, z = geo.project_points(K, T[p_kf], m.points.xyz[p_row])
-        front = z > 1e-9
-        _drop(dropped, "point_observations", (~front).sum(), "point behind the camera")
+        front = clear_of_camera(p_row, m.points.xyz, T[p_kf, :3, 3], z)
+        _drop(dropped, "point_observations", (~front).sum(), "point behind the camera or on its centre")
         p_row, p_kf, p_uv = p_row[front], p_kf[front], p_uv[front]
     pt_keep = _distinct_views(p_row, p_kf, P) >= config.min_views
     _drop(dropped, "points", (~pt_keep).sum(), f"seen from fewer than {config.min_views} keyframes")
