@@ -293,3 +293,28 @@ def test_vanishing_tracker_vertical_from_a_later_frame(init_frames):
     _, dirs_ref, vertical_ref = reference.result()
     np.testing.assert_array_equal(vertical_vp, vertical_ref)
     np.testing.assert_allclose(dirs, dirs_ref, atol=1e-12)
+
+
+def test_vanishing_tracker_starts_once_the_vote_is_settled():
+    """Eight frames in, six of them agree on the vertical (frames 0-1 show none) and the four still to
+    come before init_frames = 12 could not outvote them: the tracker starts there, not after frame 12,
+    and ends with the same vertical and directions as one that waited for all the frames; frames that
+    disagree keep it waiting."""
+    from papl_mapper.frontend.vp_tracking import VanishingTracker, VPTrackingConfig
+
+    _, frames = _tracker_frames(np.random.default_rng(21))
+    early = VanishingTracker(K, VPTrackingConfig(VPConfig(), init_frames=12))
+    reference = VanishingTracker(K, VPTrackingConfig(VPConfig(), init_frames=30))
+    for f, (segs, ids, uv, kf) in enumerate(frames):
+        early.add(segs, ids, uv, kf)
+        reference.add(segs, ids, uv, kf)
+        assert early._started == (f >= 7)
+    assert not reference._started
+    _, dirs, vertical_vp = early.result()
+    _, dirs_ref, vertical_ref = reference.result()
+    np.testing.assert_array_equal(vertical_vp, vertical_ref)
+    np.testing.assert_allclose(dirs, dirs_ref, atol=1e-12)
+    split = VanishingTracker(K, VPTrackingConfig(VPConfig(), init_frames=12))
+    split._found = [(f, MANHATTAN[0]) for f in range(4)] + [(f, MANHATTAN[1]) for f in range(4, 8)]
+    split._pending = [None] * 8
+    assert not split._vote_decided()

@@ -89,7 +89,8 @@ class FrontendConfig:
     is off by several degrees in frames with few vertical segments. Not with vp.use_vertical_prior
     off (that ablation reports each frame's own directions)."""
     vertical_init_frames: int = 30
-    """The vertical is initialised from the segments of this many first frames."""
+    """The vertical is initialised from the segments of at most this many first frames (fewer once
+    their vote is settled: `VPTrackingConfig.init_frames`)."""
     min_texture_std: float = 2.0
     """Frames whose gray-level standard deviation is below this are skipped as textureless."""
     work_max_size: int = 1280

@@ -38,7 +38,8 @@ class VPTrackingConfig:
     vp: VPConfig
     """Thresholds of the per-frame estimation."""
     init_frames: int = 30
-    """The vertical is initialised from the segments of this many first frames."""
+    """The vertical is initialised from the segments of at most this many first frames (sooner once
+    the frames still to come could no longer outvote the agreeing group: `VanishingTracker._vote_decided`)."""
     stride: int = 1
     """Estimate on every n-th frame and on keyframes; frames between reuse the last directions."""
     report_tracked_vertical: bool = True
@@ -82,7 +83,7 @@ class VanishingTracker:
             return
         self._observe_pending(frame)
         self._pending.append(frame)
-        if len(self._pending) >= self.config.init_frames:
+        if len(self._pending) >= self.config.init_frames or self._vote_decided():
             self._start()
 
     def result(self) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
@@ -143,6 +144,25 @@ class VanishingTracker:
             v = res.vertical_c
             self._found.append((f, v if v[1] <= 0 else -v))  # up is -y for an upright camera
 
+    def _agreement(self) -> np.ndarray:
+        """(n, n) whether the pending frames' own verticals (in `_found`) agree within track_gate_deg."""
+        V = np.array([v for _, v in self._found])
+        return np.degrees(np.arccos(np.clip(np.abs(V @ V.T), 0, 1))) <= self.config.vp.track_gate_deg
+
+    def _vote_decided(self) -> bool:
+        """Whether the vote of `_initial_vertical` is settled before init_frames: the largest agreeing
+        group leads every group of the frames outside it by more than the frames still to come, so
+        waiting for them (and estimating each of them twice, without and then with the prior) could
+        not hand the vertical to another group."""
+        remaining = self.config.init_frames - len(self._pending)
+        if len(self._found) <= remaining:
+            return False
+        agree = self._agreement()
+        counts = agree.sum(axis=1)
+        best = int(np.argmax(counts))
+        rival = counts[~agree[best]].max(initial=0)
+        return bool(counts[best] - rival > remaining)
+
     def _initial_vertical(self) -> np.ndarray | None:
         """The vertical of the first frame, from the first frames' own verticals (no prior).
 
@@ -154,8 +174,7 @@ class VanishingTracker:
         found, chain = self._found, self._chain
         if not found:
             return None
-        V = np.array([v for _, v in found])
-        agree = np.degrees(np.arccos(np.clip(np.abs(V @ V.T), 0, 1))) <= self.config.vp.track_gate_deg
+        agree = self._agreement()
         group = np.flatnonzero(agree[int(np.argmax(agree.sum(axis=1)))])
         f, v = found[int(group[0])]
         if chain[f] is None:
