@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from papl_mapper.atomic import atomic_path
 from papl_mapper.errors import InputError
@@ -71,6 +70,8 @@ def _rows(values: np.ndarray) -> str:
 
 def format_tum(timestamps: np.ndarray, T_wc: np.ndarray, header: str = TUM_HEADER) -> str:
     """TUM text: the `header` comment line, then `t tx ty tz qx qy qz qw` per pose (T_wc)."""
+    from scipy.spatial.transform import Rotation  # here: scipy takes a third of a second to load
+
     T_wc = np.asarray(T_wc, np.float64).reshape(-1, 4, 4)
     q_xyzw = Rotation.from_matrix(T_wc[:, :3, :3]).as_quat() if len(T_wc) else np.zeros((0, 4))
     rows = np.column_stack([np.asarray(timestamps, np.float64), T_wc[:, :3, 3], q_xyzw])
@@ -136,6 +137,8 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
             f"{path}: lines {lines[i]} and {lines[i + 1]} share timestamp {float(t[i])!r}; "
             "each pose needs its own timestamp"
         )
+    from scipy.spatial.transform import Rotation  # here, as in format_tum
+
     T = np.repeat(np.eye(4)[None], len(data), axis=0)
     T[:, :3, :3] = Rotation.from_quat(data[:, 4:8]).as_matrix()  # scalar-last (x, y, z, w), normalised
     T[:, :3, 3] = data[:, 1:4]
