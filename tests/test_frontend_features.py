@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
 import pytest
@@ -97,6 +99,13 @@ def test_sift_matches_follow_a_known_rotation_and_zoom(noise):
     other = _textured_image(np.random.default_rng(11))
     _, sift_o, _ = det.detect(other)
     assert len(match_pair(sift_a, sift_o, 0.8)[0]) < 0.05 * len(m)
+    # the frontend detects in two threads at once: each thread's own detectors, the same keypoints
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        both = list(pool.map(det.detect, [a, b, other, a]))
+    serial = [(uv_a, sift_a, orb_a), (uv_b, sift_b, orb_b), det.detect(other), (uv_a, sift_a, orb_a)]
+    for got, want in zip(both, serial, strict=True):
+        for x, y in zip(got, want, strict=True):
+            np.testing.assert_array_equal(x, y)
 
 
 def test_root_sift_dot_product_is_the_hellinger_kernel():

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -86,20 +87,34 @@ class KeyframeFeatures:
 
 
 class SiftDetector:
-    """SIFT keypoints of one gray image with RootSIFT descriptors, and the ORB descriptor of each."""
+    """SIFT keypoints of one gray image with RootSIFT descriptors, and the ORB descriptor of each.
+
+    `detect` may run in several threads at once (OpenCV's SIFT barely uses a second core by itself):
+    each thread gets its own OpenCV detectors."""
 
     def __init__(self, config: FeatureConfig):
-        self._sift = cv2.SIFT_create(config.max_features, 3, config.contrast_threshold, 10, 1.6)
-        self._orb = cv2.ORB_create(edgeThreshold=15, patchSize=15)
+        self._config = config
+        self._local = threading.local()
+
+    def _detectors(self) -> tuple[cv2.SIFT, cv2.ORB]:
+        d = getattr(self._local, "detectors", None)
+        if d is None:
+            cfg = self._config
+            d = self._local.detectors = (
+                cv2.SIFT_create(cfg.max_features, 3, cfg.contrast_threshold, 10, 1.6),
+                cv2.ORB_create(edgeThreshold=15, patchSize=15),
+            )
+        return d
 
     def detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Keypoint pixels (N, 2), RootSIFT descriptors (N, 128) float32 (unit length) and ORB
         descriptors (N, 32) uint8; keypoints too near the border for ORB are left out."""
-        kps, sift = self._sift.detectAndCompute(gray, None)
+        sift_detector, orb = self._detectors()
+        kps, sift = sift_detector.detectAndCompute(gray, None)
         if sift is None or not kps:
             return np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros((0, 32), np.uint8)
         uv = np.array([k.pt for k in kps], np.float64)
-        rows, desc = describe_corners(self._orb, gray, uv)
+        rows, desc = describe_corners(orb, gray, uv)
         return uv[rows], root_sift(sift[rows]), desc
 
 

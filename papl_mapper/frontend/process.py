@@ -184,7 +184,9 @@ def process(
         cv2.setNumThreads(config.opencv_threads)
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="segments") if config.parallel else None
     vp_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vanishing") if config.vp_thread else None
-    features_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sift") if config.parallel else None
+    # two SIFT workers: the keyframes' detections queue up behind the frames and the last ones are
+    # waited for at the end, where one worker would leave a core idle
+    features_pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="sift") if config.parallel else None
     run = _Run(recording, camera, config, stats, vp_pool, features_pool, seed)
     try:
         for done, frame in enumerate(recording, 1):
