@@ -153,7 +153,8 @@ class VanishingTracker:
         """Whether the vote of `_initial_vertical` is settled before init_frames: the largest agreeing
         group leads every group of the frames outside it by more than the frames still to come, so
         waiting for them (and estimating each of them twice, without and then with the prior) could
-        not hand the vertical to another group."""
+        not hand the vote to a vertical outside it (the winner within it may still move to another of
+        its members when more frames join: one within track_gate_deg)."""
         remaining = self.config.init_frames - len(self._pending)
         if len(self._found) <= remaining:
             return False
