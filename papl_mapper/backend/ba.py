@@ -408,7 +408,12 @@ def _run(
     iteration_s: list[float] = []
     iteration_cpu_s: list[float] = []
     optimizer = LevenbergMarquardt(
-        g.graph, g.values, config.lambda_initial, error=g.error, relative_tol=config.relative_error_tol
+        g.graph,
+        g.values,
+        config.lambda_initial,
+        error=g.error,
+        relative_tol=config.relative_error_tol,
+        halve_rejected=config.halve_rejected_steps,
     )
     converged = _lm_stage(optimizer, config, progress, history, iteration_s, iteration_cpu_s)
     cost = optimizer.error

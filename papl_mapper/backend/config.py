@@ -20,6 +20,10 @@ class BAConfig:
     """Stop when the cost decreases by less than this in one iteration."""
     lambda_initial: float = 1e-4
     """Initial Levenberg-Marquardt damping."""
+    halve_rejected_steps: bool = True
+    """A Levenberg-Marquardt step that raises the cost is tried again at half its length (one cost
+    evaluation) before the damping grows and the system is solved again (a whole elimination): most
+    rejected steps overshoot along a few unanchored lines' curved parameters (benchmarks/results/notes.md)."""
     point_sigma_px: float = 1.0
     """Standard deviation of point observations, pixels."""
     line_sigma_px: float = 1.0

@@ -8,7 +8,8 @@ quadratically with size (this driver's steps are timed in benchmarks/RESULTS.md,
 Values stay Python-owned, so callbacks receive the existing object. The algorithm is gtsam's: damping
 lambda * I added as prior factors, lambda divided by `lambda_factor` after an accepted step (not below
 `lambda_min`) and multiplied after a rejected one; with `relative_tol` the search for an acceptable step
-also ends once the linear model itself promises less than the caller's convergence test asks for.
+also ends once the linear model itself promises less than the caller's convergence test asks for, and
+with `halve_rejected` a step that raises the cost is first tried at half its length.
 """
 
 from __future__ import annotations
@@ -33,10 +34,13 @@ class LevenbergMarquardt:
         lambda_min: float = 1e-9,
         error: Callable[[gtsam.Values], float] | None = None,
         relative_tol: float = 0.0,
+        halve_rejected: bool = False,
     ) -> None:
         """`error`: the graph's cost at given values, if there is a faster way than graph.error.
         `relative_tol`: a rejected step whose linear model gains less than this fraction of the cost
-        ends the search (see `iterate`); 0 searches until lambda passes its maximum."""
+        ends the search (see `iterate`); 0 searches until lambda passes its maximum.
+        `halve_rejected`: a step that raises the cost is tried again at half its length before the
+        damping grows (accepted, the next iteration starts one damping step higher)."""
         self.graph = graph
         self.values = values
         self.cost = error if error is not None else lambda v: float(graph.error(v))
@@ -48,6 +52,7 @@ class LevenbergMarquardt:
         self.lam_max = lambda_max
         self.lam_min = lambda_min
         self.relative_tol = relative_tol
+        self.halve_rejected = halve_rejected
         self.error = self.cost(values)
         self._zero = values.zeroVectors()
         self.keys = list(values.keys())
@@ -60,6 +65,7 @@ class LevenbergMarquardt:
         self.n_linearize = 0
         self.n_solve = 0
         self.n_model_stops = 0
+        self.n_halved = 0
 
     @property
     def lam(self) -> float:
@@ -109,14 +115,24 @@ class LevenbergMarquardt:
             self.solve_s += time.perf_counter() - t
             self.n_solve += 1
             new_error = np.inf
+            halved = False
             if delta is not None:
                 t = time.perf_counter()
                 new_values = self.values.retract(delta)
                 new_error = self.cost(new_values)
+                if self.halve_rejected and not new_error < self.error:
+                    # the step overshot: half of it costs one cost evaluation, a re-solve a whole
+                    # elimination (the overshoot is mostly a few unanchored lines' curved parameters)
+                    new_values = self.values.retract(delta.scale(0.5))
+                    new_error = self.cost(new_values)
+                    halved = True
                 self.error_s += time.perf_counter() - t
             if np.isfinite(new_error) and new_error < self.error:
                 self.values, self.error = new_values, new_error
-                if self.lam / self.factor >= self.lam_min:
+                if halved:  # the model held for half the step only: damp more next time
+                    self.power += 1
+                    self.n_halved += 1
+                elif self.lam / self.factor >= self.lam_min:
                     self.power -= 1
                 return True
             if (
