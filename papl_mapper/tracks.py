@@ -114,13 +114,26 @@ class Tracks:
 class PointRows:
     """Point observation rows grouped by track id: a few tracks' observations without scanning all.
 
-    Built from `tracks.point_track` as it is now; build it again after track ids change (loop
-    closure renames tracks in place).
+    Built from `tracks.point_track` as it is now; after track ids change (loop closure renames
+    tracks in place), `rename` follows them or it is built again.
     """
 
     def __init__(self, tracks: Tracks):
         self._order = np.argsort(tracks.point_track, kind="stable")
         self._sorted = tracks.point_track[self._order]
+
+    def rename(self, pairs: np.ndarray) -> None:
+        """Follow the renaming of track ids pairs[k, 0] -> pairs[k, 1] (unique on both sides): relabel
+        their rows and re-sort the nearly sorted labels, instead of grouping every row again."""
+        pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+        if not len(pairs):
+            return
+        lo = np.searchsorted(self._sorted, pairs[:, 0], "left")
+        n = np.searchsorted(self._sorted, pairs[:, 0], "right") - lo
+        at = np.repeat(lo - (np.cumsum(n) - n), n) + np.arange(int(n.sum()))
+        self._sorted[at] = np.repeat(pairs[:, 1], n)
+        perm = np.argsort(self._sorted, kind="stable")
+        self._order, self._sorted = self._order[perm], self._sorted[perm]
 
     def rows(self, ids: np.ndarray) -> np.ndarray:
         """Rows (ascending) of every observation of the track ids `ids` (unique)."""

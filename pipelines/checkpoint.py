@@ -90,6 +90,7 @@ _REVISIT_FIELDS = {
     "old_parallax_deg",
     "angle_deg",
     "tracked_T_cw",
+    "fused",
 }
 
 T = TypeVar("T")
@@ -304,6 +305,7 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
     ang_ids, ang = _dict_arrays(reg.point_angle, ())
     rv = reg.revisits
     pairs = [np.asarray(r.pairs, np.int64).reshape(-1, 2) for r in rv]
+    fused = [np.asarray(r.fused, np.int64).reshape(-1, 2) for r in rv]
     np.savez(
         folder / "registration.npz",
         frames=np.asarray(reg.frames, np.int64),
@@ -330,6 +332,8 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
         ).reshape(-1, 4, 4),
         revisit_n_pairs=np.array([len(p) for p in pairs], np.int64),
         revisit_pairs=np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64),
+        revisit_n_fused=np.array([len(p) for p in fused], np.int64),
+        revisit_fused=np.concatenate(fused) if fused else np.zeros((0, 2), np.int64),
         point_track=tracks.point_track,
         segments_left_out=np.asarray(reg.segments_left_out, np.int64).reshape(-1, 2),
     )
@@ -355,6 +359,8 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
 
     bounds = np.concatenate([[0], np.cumsum(a["revisit_n_pairs"])])
     n_rv = len(a["revisit_frame"])
+    fused_bounds = np.concatenate([[0], np.cumsum(a.get("revisit_n_fused", np.zeros(n_rv, np.int64)))])
+    fused = a.get("revisit_fused", np.zeros((0, 2), np.int64))
 
     def newer(key: str, shape: tuple[int, ...] = ()) -> np.ndarray:
         """A revisit field later formats added; unknown (NaN) in an older checkpoint."""
@@ -374,6 +380,7 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
             old_parallax_deg=float(old_parallax[i]),
             angle_deg=float(angle[i]),
             tracked_T_cw=None if np.isnan(tracked[i]).any() else tracked[i],
+            fused=fused[fused_bounds[i] : fused_bounds[i + 1]],
         )
         for i in range(n_rv)
     ]

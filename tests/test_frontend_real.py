@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from papl_mapper.frontend.descriptors import hamming, hamming_pairs
+from papl_mapper.frontend.descriptors import hamming, hamming_pairs, match_candidates, match_descriptors
 from papl_mapper.frontend.klt import FlowConfig
 from papl_mapper.frontend.lines import LBD, LineConfig, LineTracker, SegmentDetector, match_keyframe_lines
 from papl_mapper.frontend.motion import relative_rotation, rotation_from_bearings
@@ -110,6 +110,37 @@ def test_hamming_matches_bit_count():
     np.testing.assert_array_equal(hamming(a, b), ref)
     ia, ib = np.array([0, 3, 6]), np.array([4, 0, 2])
     np.testing.assert_array_equal(hamming_pairs(a, b, ia, ib), ref[ia, ib])
+
+
+def _dense_gated_matches(a, b, max_hamming, ratio, allowed):
+    """The gated matcher written over the whole (A, B) table: the definition the sparse one keeps."""
+    ham = np.where(allowed, hamming(a, b), np.inf)
+    best_b, best_a = np.argmin(ham, axis=1), np.argmin(ham, axis=0)
+    second = np.sort(ham, axis=1)[:, 1] if len(b) > 1 else np.full(len(a), np.inf)
+    ia = np.arange(len(a))
+    d = ham[ia, best_b]
+    ok = np.isfinite(d) & (d <= max_hamming) & (best_a[best_b] == ia) & (d <= ratio * second)
+    return np.stack([ia[ok], best_b[ok]], axis=1)
+
+
+def test_matching_over_candidate_pairs_equals_the_gated_table():
+    rng = np.random.default_rng(3)
+    found = 0
+    for _ in range(400):
+        na, nb = rng.integers(1, 25, 2)
+        bits = rng.integers(1, 9)  # few distinct descriptors: many ties, which must break alike
+        a = rng.integers(0, 2**bits, (na, 32)).astype(np.uint8)
+        b = rng.integers(0, 2**bits, (nb, 32)).astype(np.uint8)
+        allowed = rng.random((na, nb)) < rng.random()
+        ia, ib = np.nonzero(allowed)
+        shuffle = rng.permutation(len(ia))  # the candidates' order does not matter
+        for max_hamming, ratio in ((64, 0.8), (256, 1.0), (12, 0.9)):
+            want = _dense_gated_matches(a, b, max_hamming, ratio, allowed)
+            got = match_candidates(a, b, ia[shuffle], ib[shuffle], max_hamming, ratio)
+            np.testing.assert_array_equal(got, want)
+            np.testing.assert_array_equal(match_descriptors(a, b, max_hamming, ratio, allowed), want)
+            found += len(want)
+    assert found > 1000  # the cases hold matches, not only refusals
 
 
 def _rot(axis, deg):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from papl_mapper.map import Camera
+from papl_mapper.mapping.point_store import PointStore
 from papl_mapper.mapping.revisit import RevisitConfig, RevisitGate, TrackIndex, close_loop, find_revisit
 from papl_mapper.tracks import Tracks
 
@@ -102,7 +103,7 @@ def _build(scramble: bool = False, last_keyframe: int = QUERY):
     kfs = list(range(0, last_keyframe + 1, KEYFRAME_EVERY))
     T_cw = {f: _true_T_cw(f) @ _drift(f) for f in kfs}
     # each point as mapped when it was first seen: in the drifted world of that frame
-    points_w = {}
+    points_w = PointStore()
     for t, f in first_frame.items():
         if f <= QUERY:
             D_inv = np.linalg.inv(_drift(f))

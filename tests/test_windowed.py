@@ -26,6 +26,23 @@ def test_point_rows_match_a_scan_and_follow_renamed_tracks():
     assert np.array_equal(PointRows(tracks).rows(ids[2:3]), np.flatnonzero(tracks.point_track == ids[2]))
 
 
+def test_point_rows_renamed_in_place_match_rows_grouped_again():
+    tracks, _, _ = make_tracks(n_frames=20)
+    rows = PointRows(tracks)
+    rng = np.random.default_rng(2)
+    ids = np.unique(tracks.point_track)
+    for _ in range(3):  # three loop closures, each fusing a few tracks into others
+        picked = rng.choice(np.unique(tracks.point_track), 12, replace=False)
+        pairs = np.stack([picked[:6], picked[6:]], axis=1)
+        new_of = dict(pairs.tolist())
+        tracks.point_track[:] = [new_of.get(t, t) for t in tracks.point_track.tolist()]
+        rows.rename(pairs)
+        fresh = PointRows(tracks)
+        for t in ids.tolist():
+            assert np.array_equal(rows.rows(np.array([t])), fresh.rows(np.array([t])))
+        assert np.array_equal(rows.rows(ids), fresh.rows(ids))
+
+
 def test_points_in_matches_a_scan_in_and_out_of_frame_order():
     tracks, _, _ = make_tracks(n_frames=12)
     for f in (0, 5, 11, 12):

@@ -45,16 +45,46 @@ def match_descriptors(
     na, nb = len(desc_a), len(desc_b)
     if na == 0 or nb == 0:
         return np.zeros((0, 2), np.int64)
-    if allowed is None:
-        ham = hamming(desc_a, desc_b).astype(np.float64)
-    else:
+    if allowed is not None:
         ia, ib = np.nonzero(allowed)
-        ham = np.full((na, nb), np.inf)
-        ham[ia, ib] = hamming_pairs(desc_a, desc_b, ia, ib)
+        return match_candidates(desc_a, desc_b, ia, ib, max_hamming, ratio)
+    ham = hamming(desc_a, desc_b).astype(np.float64)
     best_b = np.argmin(ham, axis=1)
     best_a = np.argmin(ham, axis=0)
     second = np.partition(ham, 1, axis=1)[:, 1] if nb > 1 else np.full(na, np.inf)
     ia = np.arange(na)
     d = ham[ia, best_b]
-    ok = np.isfinite(d) & (d <= max_hamming) & (best_a[best_b] == ia) & (d <= ratio * second)
+    ok = (d <= max_hamming) & (best_a[best_b] == ia) & (d <= ratio * second)
     return np.stack([ia[ok], best_b[ok]], axis=1).astype(np.int64)
+
+
+def match_candidates(
+    desc_a: np.ndarray, desc_b: np.ndarray, ia: np.ndarray, ib: np.ndarray, max_hamming: int, ratio: float
+) -> np.ndarray:
+    """`match_descriptors` over the candidate pairs (ia[k], ib[k]) only (unique pairs): the same
+    matches as a dense `allowed` with those pairs set, at a cost linear in the candidates, not A x B.
+
+    A row's best is its nearest candidate (the lowest ib among equals), its second the next one
+    (infinite when it has one candidate); a match is also the best of its ib among that one's
+    candidates (the lowest ia among equals)."""
+    ia, ib = np.asarray(ia, np.int64), np.asarray(ib, np.int64)
+    if len(ia) == 0:
+        return np.zeros((0, 2), np.int64)
+    d = hamming_pairs(desc_a, desc_b, ia, ib)
+    by_a = np.lexsort((ib, d, ia))  # per ia: nearest first, ties to the lowest ib
+    first_a = np.ones(len(ia), bool)
+    first_a[1:] = ia[by_a][1:] != ia[by_a][:-1]
+    best = by_a[first_a]  # candidate index of each row's best
+    nxt = np.flatnonzero(first_a) + 1  # the row's next candidate, if it is still the same row
+    has_second = nxt < len(ia)
+    has_second[has_second] = ia[by_a[nxt[has_second]]] == ia[best[has_second]]
+    second = np.full(len(best), np.inf)
+    second[has_second] = d[by_a[nxt[has_second]]]
+    by_b = np.lexsort((ia, d, ib))  # per ib: nearest first, ties to the lowest ia
+    first_b = np.ones(len(ib), bool)
+    first_b[1:] = ib[by_b][1:] != ib[by_b][:-1]
+    best_of_b = np.full(int(ib.max()) + 1, -1, np.int64)
+    best_of_b[ib[by_b[first_b]]] = ia[by_b[first_b]]
+    a, b, db = ia[best], ib[best], d[best]
+    ok = (db <= max_hamming) & (best_of_b[b] == a) & (db <= ratio * second)
+    return np.stack([a[ok], b[ok]], axis=1).astype(np.int64)

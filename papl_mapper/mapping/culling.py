@@ -173,7 +173,7 @@ def cull_keyframes(
         reg,
         frames=list(frames.tolist()),
         T_cw=dict(reg.T_cw),
-        points_w=dict(reg.points_w),
+        points_w=reg.points_w.copy(),
         point_angle=dict(reg.point_angle),
         T_cw_frames=dict(reg.T_cw_frames),
         lost=list(reg.lost),

@@ -20,6 +20,7 @@ from papl_mapper.geometry.se3 import invert, rotation_angle_deg, similarity_T_cw
 from papl_mapper.geometry.similarity import Sim3, umeyama
 from papl_mapper.geometry.triangulation import max_reprojection_px, triangulate_points
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
+from papl_mapper.mapping.point_store import PointStore
 from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions
 from papl_mapper.mapping.registration_lines import RegistrationLines, RegistrationLinesConfig
 from papl_mapper.mapping.relative_pose import RelativePoseConfig, register_relative
@@ -104,7 +105,7 @@ class Registration:
 
     frames: list[int] = field(default_factory=list)
     T_cw: dict[int, np.ndarray] = field(default_factory=dict)
-    points_w: dict[int, np.ndarray] = field(default_factory=dict)
+    points_w: PointStore = field(default_factory=PointStore)
     point_angle: dict[int, float] = field(default_factory=dict)
     """Largest ray angle (deg) each point was triangulated with."""
     T_cw_frames: dict[int, np.ndarray] = field(default_factory=dict)
@@ -117,6 +118,10 @@ class Registration:
     """First and last frame (rows) of each tracking segment that could not be joined to the map (its
     frames are among `lost`)."""
     init_frames: tuple[int, int] = (-1, -1)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.points_w, PointStore):
+            self.points_w = PointStore(self.points_w)
 
     def poses(self) -> dict[int, np.ndarray]:
         """T_cw of every frame with a pose: the keyframes' and those of the frames between them."""
@@ -148,7 +153,7 @@ def _triangulate_new(
     """
     K = tracks.camera.K
     ids, _ = tracks.points_in(frame)
-    known = sum(t in reg.points_w for t in ids.tolist())
+    known = int(reg.points_w.has(ids).sum())
     min_parallax = cfg.starved_parallax_deg if known < cfg.starved_below else cfg.min_parallax_deg
     ids = np.array(
         [t for t in ids.tolist() if reg.point_angle.get(t, 0.0) < cfg.mature_parallax_deg], np.int64
@@ -360,7 +365,7 @@ def _extend(
                 )
                 if gate.admit(rv) and close_loop(tracks, reg.points_w, reg.T_cw, reg.T_cw_frames, rv, index):
                     reg.revisits.append(rv)
-                    rows = PointRows(tracks)  # the loop renamed tracks
+                    rows.rename(rv.fused)  # the loop renamed tracks
                     last_T = reg.T_cw[f]
             since_refine += 1
             if refine is not None and cfg.refine_every > 0 and since_refine >= cfg.refine_every:
@@ -562,10 +567,10 @@ def _pnp(
 ) -> tuple[PnPResult | None, int]:
     """PnP of frame f against the points mapped so far; None when too few of them are seen."""
     ids, uv = tracks.points_in(f)
-    known = np.array([t in reg.points_w for t in ids.tolist()], bool)
+    known = reg.points_w.has(ids)
     if known.sum() < cfg.pnp.min_inliers:
         return None, len(ids)
-    X = np.stack([reg.points_w[int(t)] for t in ids[known]])
+    X = reg.points_w.xyz(ids[known])
     # the line tracks the keyframes so far triangulate hold the pose where points are few
     refine_lines = lines is not None and cfg.track_lines.enabled
     lines_w, line_xy, _ = lines.frame_lines(f, reg.T_cw) if refine_lines else (None, None, None)
@@ -612,8 +617,8 @@ def _pose_from_lines(
     if len(lines_w) < cfg.pnp.from_lines.min_lines:
         return None
     ids, uv = tracks.points_in(f)
-    known = np.array([t in reg.points_w for t in ids.tolist()], bool)
-    X = np.stack([reg.points_w[int(t)] for t in ids[known]]) if known.any() else np.zeros((0, 3))
+    known = reg.points_w.has(ids)
+    X = reg.points_w.xyz(ids[known])
     dirs_w = dirs(reg.T_cw)[0] if dirs is not None else None
     res = pose_from_lines(
         X,

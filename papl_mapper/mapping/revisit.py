@@ -17,9 +17,11 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from papl_mapper.frontend.descriptors import match_descriptors
+from papl_mapper.frontend.descriptors import match_candidates
 from papl_mapper.geometry.se3 import similarity_T_cw, so3_exp, so3_log
+from papl_mapper.mapping.point_store import PointStore
 from papl_mapper.mapping.tracking import PnPConfig, track_pnp
 from papl_mapper.tracks import Tracks
 
@@ -78,6 +80,8 @@ class Revisit:
     old_parallax_deg: float = float("nan")  # median triangulation angle of the matched old points
     angle_deg: float = float("nan")  # rotation between the tracked and the revisit pose
     tracked_T_cw: np.ndarray | None = None  # the pose as tracked, before the correction
+    fused: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    """(K, 2) track renamed, track it became: the pairs closing the loop fused."""
 
     def correction(self) -> tuple[np.ndarray, np.ndarray, float]:
         """The world Sim(3) x -> s R x + t taking the map as tracked to the map the old points see."""
@@ -87,37 +91,43 @@ class Revisit:
         return R, t, self.scale
 
 
+_NEVER = np.iinfo(np.int64).max
+"""`TrackIndex.last` of an id that is no track (fused into another): never old enough."""
+
+
 @dataclass
 class TrackIndex:
     """One keyframe ORB descriptor per point track and the first and last frame of every track."""
 
     desc_ids: np.ndarray  # (D,) sorted track ids that have a descriptor
     desc: np.ndarray  # (D, 32) uint8
-    first: dict[int, int] = field(default_factory=dict)
-    last: dict[int, int] = field(default_factory=dict)
+    first: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    """(T,) first frame of each track id (-1: none)."""
+    last: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    """(T,) last frame of each track id (`_NEVER`: none)."""
 
     @classmethod
     def build(cls, tracks: Tracks) -> TrackIndex:
         """Index the descriptors (the first keyframe's per track) and spans of `tracks`."""
         tid = tracks.point_track[tracks.point_desc_row]
         ids, first_row = np.unique(tid, return_index=True)
-        uniq, inv = np.unique(tracks.point_track, return_inverse=True)
-        lo = np.full(len(uniq), np.iinfo(np.int64).max)
-        hi = np.full(len(uniq), -1)
-        np.minimum.at(lo, inv, tracks.point_frame)
-        np.maximum.at(hi, inv, tracks.point_frame)
-        keys = uniq.tolist()
+        n = int(tracks.point_track.max()) + 1 if len(tracks.point_track) else 0
+        first, last = np.full(n, _NEVER), np.full(n, -1)
+        np.minimum.at(first, tracks.point_track, tracks.point_frame)
+        np.maximum.at(last, tracks.point_track, tracks.point_frame)
+        none = last < 0
+        first[none], last[none] = -1, _NEVER
         return cls(
             ids,
             tracks.point_desc[first_row] if len(ids) else np.zeros((0, 32), np.uint8),
-            dict(zip(keys, lo.tolist(), strict=True)),
-            dict(zip(keys, hi.tolist(), strict=True)),
+            first,
+            last,
         )
 
 
 def find_revisit(
     tracks: Tracks,
-    points_w: dict[int, np.ndarray],
+    points_w: PointStore,
     T_cw: dict[int, np.ndarray],
     frame: int,
     index: TrackIndex,
@@ -132,12 +142,11 @@ def find_revisit(
     if len(rows) < cfg.min_inliers:
         return None
     q_ids, q_uv, q_desc = tracks.point_track[rows], tracks.point_uv[rows], tracks.point_desc[here]
-    ended = frame - cfg.min_gap_frames
-    old = [t for t in index.desc_ids.tolist() if t in points_w and index.last[t] <= ended]
-    if len(old) < cfg.min_inliers:
+    old_ids = index.desc_ids[index.last[index.desc_ids] <= frame - cfg.min_gap_frames]
+    old_ids = old_ids[points_w.has(old_ids)]
+    if len(old_ids) < cfg.min_inliers:
         return None
-    old_ids = np.array(old, np.int64)
-    X_old = np.stack([points_w[t] for t in old])
+    X_old = points_w.xyz(old_ids)
     # guided search: old points are compared only with keypoints near where the tracked pose puts them
     T = T_cw[frame]
     Xc = X_old @ T[:3, :3].T + T[:3, 3]
@@ -152,8 +161,8 @@ def find_revisit(
         return None
     old_ids, X_old, uv_old = old_ids[near], X_old[near], uv_old[near]
     old_desc = index.desc[np.searchsorted(index.desc_ids, old_ids)]
-    allowed = np.linalg.norm(q_uv[:, None, :] - uv_old[None, :, :], axis=2) <= cfg.search_radius_px
-    pairs = match_descriptors(q_desc, old_desc, cfg.max_hamming, cfg.match_ratio, allowed)
+    qi, oi = _within(q_uv, uv_old, cfg.search_radius_px)
+    pairs = match_candidates(q_desc, old_desc, qi, oi, cfg.max_hamming, cfg.match_ratio)
     if len(pairs) < cfg.min_inliers:
         return None
     qi, oi = pairs.T
@@ -164,7 +173,7 @@ def find_revisit(
         log.debug("frame %d: %d ORB matches to old points, not verified (%s)", frame, len(pairs), res.reason)
         return None
     qi, oi = qi[res.inliers], oi[res.inliers]
-    old_frame = int(np.median([index.last[int(t)] for t in old_ids[oi]]))
+    old_frame = int(np.median(index.last[old_ids[oi]]))
     tracked = T_cw[frame]
     new_old = np.stack([q_ids[qi], old_ids[oi]], axis=1).astype(np.int64)
     rv = Revisit(
@@ -256,7 +265,7 @@ def _agree(a: Revisit, b: Revisit, cfg: RevisitConfig) -> bool:
 
 def close_loop(
     tracks: Tracks,
-    points_w: dict[int, np.ndarray],
+    points_w: PointStore,
     T_cw: dict[int, np.ndarray],
     T_cw_frames: dict[int, np.ndarray],
     revisit: Revisit,
@@ -288,10 +297,11 @@ def close_loop(
     tids = np.array([tid for tid, g in born.items() if g > f0], np.int64)
     if len(tids):
         Ra, ta, sa = part(np.array([born[int(tid)] for tid in tids], np.int64))
-        X = np.stack([points_w[int(tid)] for tid in tids])
+        X = points_w.xyz(tids)
         moved = sa[:, None] * np.einsum("kij,kj->ki", Ra, X) + ta
         points_w.update(zip(tids.tolist(), moved, strict=True))
-    fused = _fuse(tracks, points_w, revisit.pairs, index)
+    revisit.fused = _fuse(tracks, points_w, revisit.pairs, index)
+    fused = len(revisit.fused)
     log.info(
         "revisit at frame %d of frame %d: %d tracks fused, drift %.3f (map units), scale %.3f, old points' "
         "parallax %.2f deg",
@@ -305,25 +315,38 @@ def close_loop(
     return fused
 
 
-def _fuse(tracks: Tracks, points_w: dict[int, np.ndarray], pairs: np.ndarray, index: TrackIndex) -> int:
-    """Rename each new track to its old one (one to one) where their frames do not overlap."""
+def _fuse(tracks: Tracks, points_w: PointStore, pairs: np.ndarray, index: TrackIndex) -> np.ndarray:
+    """Rename each new track to its old one (one to one) where their frames do not overlap; returns
+    the (new, old) pairs renamed."""
     keep, used = [], set()
     for n, o in pairs.tolist():
-        if n != o and o not in used and index.first.get(n, -1) > index.last.get(o, 1 << 62):
+        if n != o and o not in used and index.first[n] > index.last[o]:
             keep.append((n, o))
             used.add(o)
     if not keep:
-        return 0
+        return np.zeros((0, 2), np.int64)
     new, old = np.array(keep, np.int64).T
     order = np.argsort(new)
     new, old = new[order], old[order]
-    sel = np.isin(tracks.point_track, new)
+    renamed = np.zeros(int(tracks.point_track.max()) + 1, bool)
+    renamed[new] = True
+    sel = renamed[tracks.point_track]
     tracks.point_track[sel] = old[np.searchsorted(new, tracks.point_track[sel])]
-    for n, o in zip(new.tolist(), old.tolist(), strict=True):
+    for n in new.tolist():
         points_w.pop(n, None)
-        index.last[o] = index.last.pop(n)
-        index.first.pop(n, None)
-    return len(new)
+    index.last[old] = index.last[new]
+    index.first[new], index.last[new] = -1, _NEVER
+    return np.stack([new, old], axis=1)
+
+
+def _within(a: np.ndarray, b: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j) with |a[i] - b[j]| <= radius, from a k-d tree instead of the full A x B."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    ij = cKDTree(a).sparse_distance_matrix(cKDTree(b), radius * (1 + 1e-9), output_type="ndarray")
+    i, j = ij["i"].astype(np.int64), ij["j"].astype(np.int64)
+    keep = np.linalg.norm(a[i] - b[j], axis=1) <= radius  # the exact test, not the tree's rounding
+    return i[keep], j[keep]
 
 
 def _scale_correction(revisit: Revisit, points_w: dict[int, np.ndarray], T_cw_now: np.ndarray) -> float:
@@ -339,12 +362,11 @@ def _scale_correction(revisit: Revisit, points_w: dict[int, np.ndarray], T_cw_no
     return float(np.median(d_old[ok] / d_new[ok])) if ok.sum() >= 8 else 1.0
 
 
-def _first_keyframe(
-    tracks: Tracks, points_w: dict[int, np.ndarray], T_cw: dict[int, np.ndarray]
-) -> dict[int, int]:
+def _first_keyframe(tracks: Tracks, points_w: PointStore, T_cw: dict[int, np.ndarray]) -> dict[int, int]:
     """The first keyframe that observes each mapped point."""
-    sel = np.isin(tracks.point_frame, np.fromiter(T_cw, np.int64, len(T_cw)))
-    sel &= np.isin(tracks.point_track, np.fromiter(points_w, np.int64, len(points_w)))
+    keyframe = np.zeros(len(tracks), bool)
+    keyframe[np.fromiter(T_cw, np.int64, len(T_cw))] = True
+    sel = keyframe[tracks.point_frame] & points_w.has(tracks.point_track)
     uniq, inv = np.unique(tracks.point_track[sel], return_inverse=True)
     first = np.full(len(uniq), np.iinfo(np.int64).max)
     np.minimum.at(first, inv, tracks.point_frame[sel])

@@ -30,17 +30,19 @@ class WindowedRefiner:
     def __init__(self, tracks: Tracks, ba: BAConfig, window: int, max_point_error_px: float):
         self.tracks, self.ba, self.window, self.max_point_error_px = tracks, ba, window, max_point_error_px
         self._rows = PointRows(tracks)
-        self._revisits = 0  # loops closed when the rows were grouped (a loop renames tracks)
+        self._seen = (0, 0)  # (id of the segment's revisit list, how many of them the rows follow)
 
     def __call__(self, reg: Registration) -> None:
         tracks = self.tracks
-        if self._revisits != len(reg.revisits):
-            self._rows, self._revisits = PointRows(tracks), len(reg.revisits)
+        done = self._seen[1] if self._seen[0] == id(reg.revisits) else 0
+        for rv in reg.revisits[done:]:  # loops closed since the last call renamed tracks
+            self._rows.rename(rv.fused)
+        self._seen = (id(reg.revisits), len(reg.revisits))
         frames = sorted(reg.frames)
         # the two oldest keyframes stay fixed: with the shared points they hold the gauge and scale
         keyframes = np.array(frames[max(2, len(frames) - self.window) :])
         seen = np.unique(np.concatenate([tracks.points_in(int(f))[0] for f in keyframes]))
-        pids = [int(t) for t in seen if int(t) in reg.points_w]
+        pids = seen[reg.points_w.has(seen)].tolist()
         rows = self._rows.rows(np.array(pids, np.int64))
         rows = rows[np.isin(tracks.point_frame[rows], frames)]
         T_wc = {int(f): np.linalg.inv(reg.T_cw[int(f)]) for f in np.unique(tracks.point_frame[rows])}
