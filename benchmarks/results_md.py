@@ -254,6 +254,21 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
             "memory_long.json": [
                 Rows("runs", ("variant", "seconds", "frames", "keyframes", "peak_rss_MiB", "wall_s"))
             ],
+            "registration_scale.json": [
+                Rows(
+                    "runs",
+                    (
+                        "seconds",
+                        "keyframes",
+                        "revisits",
+                        "registration_s",
+                        "baseline_s",
+                        "ratio",
+                        "ms_per_keyframe",
+                        "max_pose_difference",
+                    ),
+                )
+            ],
             "resume.json": [
                 Keys(
                     (
