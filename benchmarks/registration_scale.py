@@ -34,7 +34,8 @@ import dataclasses, json, sys, time
 import numpy as np
 checkout, tracks_file, out = sys.argv[1:4]
 # that checkout's papl_mapper, not the editable install's: its package and its top-level pipelines/
-sys.meta_path = [f for f in sys.meta_path if "editable" not in (type(f).__module__ + type(f).__name__).lower()]
+finders = sys.meta_path
+sys.meta_path = [f for f in finders if "editable" not in (type(f).__module__ + type(f).__name__).lower()]
 sys.path.insert(0, checkout)
 import papl_mapper
 papl_mapper.__path__.append(checkout)

@@ -85,12 +85,8 @@ class PointStore(MutableMapping[int, np.ndarray]):
             raise KeyError("ids without a point")
         return self._xyz[ids]
 
-    def set_many(self, ids: np.ndarray, xyz: np.ndarray) -> None:
-        """Set the points of ids (unique); new ids are inserted in the given order."""
-        for tid, x in zip(np.asarray(ids, np.int64).tolist(), np.asarray(xyz, np.float64), strict=True):
-            self[tid] = x
-
     def copy(self) -> PointStore:
+        """An independent store with the same points in the same order."""
         out = PointStore()
         out._xyz, out._seq, out._next, out._n = self._xyz.copy(), self._seq.copy(), self._next, self._n
         return out
