@@ -151,6 +151,30 @@ def test_global_ba_converges_noise_free(truth):
     assert np.all(res.map.lines.inverse_depth[anch] > 0)
 
 
+def test_multifrontal_and_sequential_elimination_take_the_same_steps(monkeypatch):
+    """The solver chosen by size (`multifrontal_from_keyframes`) changes the time, not the result."""
+    from papl_mapper.backend.lm import LevenbergMarquardt
+
+    used = []
+    eliminate = LevenbergMarquardt._eliminate
+    monkeypatch.setattr(
+        LevenbergMarquardt, "_eliminate", lambda self, g: used.append(self.multifrontal) or eliminate(self, g)
+    )
+    noisy = make_scene(
+        SceneSpec(n_keyframes=8, n_points=60, lines_per_axis=(6, 6, 6), obs_noise_px=0.5, seed=4)
+    )
+    start = perturb(noisy, **START)
+    seq = global_ba(start, _cfg())
+    assert used and not any(used)
+    used.clear()
+    mf = global_ba(start, _cfg(multifrontal_from_keyframes=8))  # the scene's 8 keyframes
+    assert used and all(used)
+    assert mf.iterations == seq.iterations and mf.final_cost == pytest.approx(seq.final_cost, rel=1e-9)
+    np.testing.assert_allclose(mf.map.keyframes.T_wc, seq.map.keyframes.T_wc, atol=1e-9)
+    np.testing.assert_allclose(mf.map.points.xyz, seq.map.points.xyz, atol=1e-8)
+    np.testing.assert_allclose(mf.map.lines.endpoints_w, seq.map.lines.endpoints_w, atol=1e-8)
+
+
 def test_global_ba_with_observation_noise():
     noisy = make_scene(
         SceneSpec(n_keyframes=8, n_points=60, lines_per_axis=(6, 6, 6), obs_noise_px=0.5, seed=4)

@@ -414,6 +414,7 @@ def _run(
         error=g.error,
         relative_tol=config.relative_error_tol,
         halve_rejected=config.halve_rejected_steps,
+        multifrontal=int(pb.kf_in.sum()) >= config.multifrontal_from_keyframes,
     )
     converged = _lm_stage(optimizer, config, progress, history, iteration_s, iteration_cpu_s)
     cost = optimizer.error

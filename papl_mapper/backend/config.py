@@ -24,6 +24,11 @@ class BAConfig:
     """A Levenberg-Marquardt step that raises the cost is tried again at half its length (one cost
     evaluation) before the damping grows and the system is solved again (a whole elimination): most
     rejected steps overshoot along a few unanchored lines' curved parameters (benchmarks/results/notes.md)."""
+    multifrontal_from_keyframes: int = 500
+    """Damped systems with at least this many keyframes are solved by multifrontal elimination, smaller
+    ones sequentially (both exact, the same step): sequential is faster on many small landmark cliques;
+    once a long recording's loop closures fill in the camera part, multifrontal's dense fronts are
+    several times faster (benchmarks/results/notes.md)."""
     point_sigma_px: float = 1.0
     """Standard deviation of point observations, pixels."""
     line_sigma_px: float = 1.0

@@ -35,12 +35,15 @@ class LevenbergMarquardt:
         error: Callable[[gtsam.Values], float] | None = None,
         relative_tol: float = 0.0,
         halve_rejected: bool = False,
+        multifrontal: bool = False,
     ) -> None:
         """`error`: the graph's cost at given values, if there is a faster way than graph.error.
         `relative_tol`: a rejected step whose linear model gains less than this fraction of the cost
         ends the search (see `iterate`); 0 searches until lambda passes its maximum.
         `halve_rejected`: a step that raises the cost is tried again at half its length before the
-        damping grows (accepted, the next iteration starts one damping step higher)."""
+        damping grows (accepted, the next iteration starts one damping step higher).
+        `multifrontal`: eliminate multifrontally (dense fronts: large graphs whose loops fill in),
+        else sequentially (a fifth faster on small BA graphs); the same solution either way."""
         self.graph = graph
         self.values = values
         self.cost = error if error is not None else lambda v: float(graph.error(v))
@@ -53,6 +56,7 @@ class LevenbergMarquardt:
         self.lam_min = lambda_min
         self.relative_tol = relative_tol
         self.halve_rejected = halve_rejected
+        self.multifrontal = multifrontal
         self.error = self.cost(values)
         self._zero = values.zeroVectors()
         self.keys = list(values.keys())
@@ -87,6 +91,14 @@ class LevenbergMarquardt:
         self._damping_cache[lam] = damp
         return damp
 
+    def _eliminate(
+        self, damped: gtsam.GaussianFactorGraph
+    ) -> gtsam.GaussianBayesNet | gtsam.GaussianBayesTree:
+        """The damped system eliminated in the chosen order (`multifrontal` or sequential)."""
+        if self.multifrontal:
+            return damped.eliminateMultifrontal(self.ordering)
+        return damped.eliminateSequential(self.ordering)
+
     def iterate(self) -> bool:
         """Returns True if a step was accepted, False if none is worth searching for: lambda ran past
         its maximum, or a rejected step's linear model already gained less than `relative_tol` of the
@@ -107,9 +119,7 @@ class LevenbergMarquardt:
             damped.push_back(lin)
             damped.push_back(self._damping(self.lam))
             try:
-                # sequential elimination: the same solution as gtsam's default multifrontal one and a
-                # fifth faster on BA graphs (thousands of small landmark cliques; benchmarks/RESULTS.md)
-                delta = damped.eliminateSequential(self.ordering).optimize()
+                delta = self._eliminate(damped).optimize()
             except RuntimeError:  # indeterminate at this damping (as gtsam's LM: damp more)
                 delta = None
             self.solve_s += time.perf_counter() - t
