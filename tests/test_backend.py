@@ -175,6 +175,22 @@ def test_multifrontal_and_sequential_elimination_take_the_same_steps(monkeypatch
     np.testing.assert_allclose(mf.map.lines.endpoints_w, seq.map.lines.endpoints_w, atol=1e-8)
 
 
+def test_multifrontal_only_for_large_maps_whose_dense_front_fits_the_budget():
+    from papl_mapper.backend.ba import _multifrontal
+
+    cfg = BAConfig()  # 500 keyframes and more, (6 K)^2 doubles within 400 MiB: up to 1,206 keyframes
+    assert [_multifrontal(k, cfg) for k in (49, 499, 500, 1077, 1206, 1207, 1732)] == [
+        False,
+        False,
+        True,
+        True,
+        True,
+        False,
+        False,
+    ]
+    assert _multifrontal(1732, BAConfig(multifrontal_max_front_mib=1000.0))
+
+
 def test_global_ba_with_observation_noise():
     noisy = make_scene(
         SceneSpec(n_keyframes=8, n_points=60, lines_per_axis=(6, 6, 6), obs_noise_px=0.5, seed=4)

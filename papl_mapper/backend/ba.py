@@ -389,6 +389,14 @@ def _lm_stage(
     return False
 
 
+def _multifrontal(n_keyframes: int, config: BAConfig) -> bool:
+    """Whether to eliminate multifrontally: a large map, whose dense camera front still fits the budget."""
+    front_mib = (6 * n_keyframes) ** 2 * 8 / 2**20
+    return (
+        n_keyframes >= config.multifrontal_from_keyframes and front_mib <= config.multifrontal_max_front_mib
+    )
+
+
 def _run(
     m: Map,
     pb: Problem,
@@ -414,7 +422,7 @@ def _run(
         error=g.error,
         relative_tol=config.relative_error_tol,
         halve_rejected=config.halve_rejected_steps,
-        multifrontal=int(pb.kf_in.sum()) >= config.multifrontal_from_keyframes,
+        multifrontal=_multifrontal(int(pb.kf_in.sum()), config),
     )
     converged = _lm_stage(optimizer, config, progress, history, iteration_s, iteration_cpu_s)
     cost = optimizer.error

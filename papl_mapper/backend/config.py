@@ -28,7 +28,11 @@ class BAConfig:
     """Damped systems with at least this many keyframes are solved by multifrontal elimination, smaller
     ones sequentially (both exact, the same step): sequential is faster on many small landmark cliques;
     once a long recording's loop closures fill in the camera part, multifrontal's dense fronts are
-    several times faster (benchmarks/results/notes.md)."""
+    several times faster (benchmarks/results/notes.md)..."""
+    multifrontal_max_front_mib: float = 400.0
+    """...while the camera part as one dense front, (6 x keyframes)^2 doubles, stays within this many MiB
+    (1,206 keyframes): the fronts' memory grows faster than that, and past it a long recording's job
+    outgrows its memory (1,732 keyframes: 4.9 GB against 1.6 GB sequentially)."""
     point_sigma_px: float = 1.0
     """Standard deviation of point observations, pixels."""
     line_sigma_px: float = 1.0
