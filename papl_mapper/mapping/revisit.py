@@ -349,7 +349,7 @@ def _within(a: np.ndarray, b: np.ndarray, radius: float) -> tuple[np.ndarray, np
     return i[keep], j[keep]
 
 
-def _scale_correction(revisit: Revisit, points_w: dict[int, np.ndarray], T_cw_now: np.ndarray) -> float:
+def _scale_correction(revisit: Revisit, points_w: PointStore, T_cw_now: np.ndarray) -> float:
     """Median ratio of old to new depths of the matched points mapped on both visits (1 if under 8)."""
     both = [(n, o) for n, o in revisit.pairs.tolist() if n in points_w and o in points_w]
     if len(both) < 8:
