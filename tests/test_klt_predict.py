@@ -67,7 +67,7 @@ def test_prediction_keeps_tracks_under_large_motion(dx, dy, angle_deg):
     cfg = FlowConfig()
 
     def kept_accurate(guess: np.ndarray | None) -> float:
-        new, ok = track_klt(a, b, pts, cfg, W, H, motion=guess)
+        new, ok, _ = track_klt(a, b, pts, cfg, W, H, motion=guess)
         err = np.linalg.norm(new - truth, axis=1)
         return float(np.mean(ok & (err < SUBPIXEL_TOL_PX)))
 
@@ -76,14 +76,14 @@ def test_prediction_keeps_tracks_under_large_motion(dx, dy, angle_deg):
     assert kept_accurate(predicted) >= MIN_KEPT_PREDICTED
     assert kept_accurate(None) <= MAX_KEPT_UNPREDICTED
     # predict=False in the config ignores a given motion
-    new, ok = track_klt(a, b, pts, FlowConfig(predict=False), W, H, motion=predicted)
+    new, ok, _ = track_klt(a, b, pts, FlowConfig(predict=False), W, H, motion=predicted)
     assert np.mean(ok & (np.linalg.norm(new - truth, axis=1) < SUBPIXEL_TOL_PX)) <= MAX_KEPT_UNPREDICTED
 
 
 def test_prediction_keeps_small_motion_accurate():
     """A prediction of zero motion (identity) must not hurt tracking a small shift."""
     a, b, pts, motion = _pair(2.3, -1.7, 0.0)
-    new, ok = track_klt(a, b, pts, FlowConfig(), W, H, motion=np.eye(3))
+    new, ok, _ = track_klt(a, b, pts, FlowConfig(), W, H, motion=np.eye(3))
     err = np.linalg.norm(new - _transfer(motion, pts), axis=1)
     assert ok.mean() > 0.95
     assert np.median(err[ok]) < SUBPIXEL_TOL_PX

@@ -1,4 +1,4 @@
-"""Pyramidal Lucas-Kanade flow with a forward-backward check.
+"""Pyramidal Lucas-Kanade flow with a forward-backward check and exposure compensation.
 
 (OpenCV's Python binding takes only images, not prebuilt pyramids, so each call pyramids both.)
 """
@@ -29,6 +29,11 @@ class FlowConfig:
     predict: bool = True
     """Start LK from the image motion of the previous frame pair (a homography fitted to its flow),
     so fast turns, whose flow exceeds what the pyramid can find from zero, keep their tracks."""
+    exposure_gate: float = 0.0025
+    """Compensate an exposure change between the two images (a relative gain, `exposure_gain`) larger
+    than this: LK assumes constant brightness, and on low-contrast texture its tracks slide under a
+    changing gain. 0.25%: above the 0.1-0.23% the gain reads on renders without exposure changes, so
+    recordings of constant exposure are tracked exactly as without it. 0 turns it off."""
 
 
 def predict_flow(flow_from: np.ndarray, flow_to: np.ndarray) -> np.ndarray | None:
@@ -44,6 +49,49 @@ def predict_flow(flow_from: np.ndarray, flow_to: np.ndarray) -> np.ndarray | Non
     return H
 
 
+#: Patches darker or brighter than these grey levels (near black, clipped) say nothing about the gain.
+GAIN_RANGE = (16.0, 240.0)
+#: Half side of the patches whose brightness is compared: the same pixels of the scene in both images.
+GAIN_PATCH_RADIUS = 3
+#: Fewest usable patches for a gain.
+GAIN_MIN_PATCHES = 12
+
+
+def patch_means(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(N,) mean brightness of the square patch centred on each (sub-)pixel position, sampled bilinearly."""
+    r = GAIN_PATCH_RADIUS
+    side = 2 * r + 1
+    off = np.arange(-r, r + 1, dtype=np.float32)
+    uv = np.asarray(uv, np.float32)
+    map_x = np.broadcast_to(uv[:, 0, None, None] + off[None, None, :], (len(uv), side, side))
+    map_y = np.broadcast_to(uv[:, 1, None, None] + off[None, :, None], (len(uv), side, side))
+    patches = cv2.remap(
+        img,
+        np.ascontiguousarray(map_x).reshape(-1, side),
+        np.ascontiguousarray(map_y).reshape(-1, side),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    return patches.reshape(len(uv), side * side).mean(axis=1, dtype=np.float64)
+
+
+def exposure_gain(prev: np.ndarray, cur: np.ndarray, uv_prev: np.ndarray, uv_cur: np.ndarray) -> float:
+    """Exposure of cur relative to prev from pixels tracked between them (N, 2 each); 1 when unknown.
+
+    The median brightness ratio of the patches around the tracked pixels: a camera's exposure or
+    gain change scales every pixel alike (through a gamma curve too), while the scene's own
+    brightness changes with the view only here and there.
+    """
+    if len(uv_prev) < GAIN_MIN_PATCHES:
+        return 1.0
+    a, b = patch_means(prev, uv_prev), patch_means(cur, uv_cur)
+    lo, hi = GAIN_RANGE
+    use = (a > lo) & (a < hi) & (b > lo) & (b < hi)
+    if use.sum() < GAIN_MIN_PATCHES:
+        return 1.0
+    return float(np.median(b[use] / a[use]))
+
+
 def track_klt(
     prev: np.ndarray,
     cur: np.ndarray,
@@ -52,31 +100,43 @@ def track_klt(
     width: int,
     height: int,
     motion: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Track (N, 2) pixels from gray image prev to cur: new pixels (N, 2) float32, kept mask (N,).
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Track (N, 2) pixels from gray image prev to cur: new pixels (N, 2) float32, kept mask (N,) and
+    the exposure gain compensated (1 when none was).
 
     `motion` (a homography of the expected image motion) seeds LK forward; the backward pass starts
-    from the original pixels. Kept: found forward and backward, the round trip within
-    fb_threshold_px, inside the image.
+    from the original pixels. An exposure change beyond `exposure_gate`, measured on the forward
+    pass, is compensated by scaling prev to cur's exposure and tracking again from the forward pass.
+    Kept: found forward and backward, the round trip within fb_threshold_px, inside the image.
     """
     n = len(uv)
     if n == 0:
-        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool), 1.0
     p0 = np.ascontiguousarray(uv, np.float32).reshape(-1, 1, 2)
     level = config.levels
     win = (config.win_size, config.win_size)
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.max_iterations, config.epsilon)
     lk = {"winSize": win, "maxLevel": level, "criteria": crit}
+    seeded = {**lk, "flags": cv2.OPTFLOW_USE_INITIAL_FLOW}
     if motion is not None and config.predict:
         guess = cv2.perspectiveTransform(p0, motion).astype(np.float32)
-        seeded = {**lk, "flags": cv2.OPTFLOW_USE_INITIAL_FLOW}
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, guess, **seeded)
-        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), **seeded)
     else:
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
+    gain = 1.0
+    if config.exposure_gate > 0:
+        found = st1.ravel() == 1
+        measured = exposure_gain(prev, cur, p0.reshape(-1, 2)[found], p1.reshape(-1, 2)[found])
+        if abs(measured - 1.0) > config.exposure_gate:
+            gain = measured
+            prev = cv2.convertScaleAbs(prev, alpha=gain)  # prev as cur's exposure would have seen it
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, p1, **seeded)
+    if motion is not None and config.predict:
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), **seeded)
+    else:
         p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **lk)
     p1 = p1.reshape(-1, 2)
     fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= config.fb_threshold_px)
     ok &= (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] <= width - 1) & (p1[:, 1] <= height - 1)
-    return p1, ok
+    return p1, ok, gain

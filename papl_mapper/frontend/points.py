@@ -49,14 +49,16 @@ class PointTracker:
         self.next_id = 0
         self.flow_from = np.zeros((0, 2), np.float32)  # survivors of the last step, before and after
         self.flow_to = np.zeros((0, 2), np.float32)
+        self.gain = 1.0  # exposure change the last step compensated (1: none)
         self._orb = cv2.ORB_create(edgeThreshold=15, patchSize=15)
 
     def step(self, gray: np.ndarray, prev: np.ndarray | None, force_detect: bool = False) -> None:
         """Follow live tracks from gray image prev to gray; replenish corners where sparse."""
         motion = predict_flow(self.flow_from, self.flow_to) if self.flow.predict else None
         self.flow_from = self.flow_to = np.zeros((0, 2), np.float32)
+        self.gain = 1.0
         if prev is not None and len(self.ids):
-            new_uv, ok = track_klt(prev, gray, self.uv, self.flow, self.width, self.height, motion)
+            new_uv, ok, self.gain = track_klt(prev, gray, self.uv, self.flow, self.width, self.height, motion)
             self.flow_from, self.flow_to = self.uv[ok], new_uv[ok]
             self.ids, self.uv = self.ids[ok], new_uv[ok]
         elif prev is None and len(self.ids):

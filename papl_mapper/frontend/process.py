@@ -143,6 +143,7 @@ class FrontendStats:
     skipped: int = 0
     bad_frames: list[str] = field(default_factory=list)  # frames that did not decode: "name (reason)"
     breaks: int = 0  # frames where KLT lost most tracks of the previous frame (a jump)
+    exposure_compensated: int = 0  # frames whose exposure change from the previous one KLT compensated
     feature_tracks: int = 0  # tracks chained from SIFT matches across weak KLT links
     line_tracks_joined: int = 0  # segment tracks joined into others across verified keyframe pairs
     feature_pairs_verified: int = 0
@@ -377,6 +378,7 @@ class _Run:
         restart = self.prev_gray is None
         pending = pool.submit(_timed, self._segments, gray) if pool is not None else None
         points.step(small, self.prev_small, force_detect=restart)
+        self.stats.exposure_compensated += points.gain != 1.0
         broken = not restart and self._is_break(points.ids)
         if broken:
             self.stats.breaks += 1
