@@ -85,6 +85,19 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
                     ),
                 )
             ],
+            "track_accuracy.json": [
+                Rows(
+                    "rows",
+                    (
+                        "case",
+                        "setting",
+                        "tracks_measured",
+                        "reprojection_median_px",
+                        "tracks_over_3px",
+                        "epipolar_median_px",
+                    ),
+                )
+            ],
             "vanishing_yud.json": [
                 Rows(
                     "results",
