@@ -17,7 +17,7 @@ writes benchmarks/results/track_accuracy.json.
 
     .venv/bin/python benchmarks/track_accuracy.py
     .venv/bin/python benchmarks/track_accuracy.py --cases corridor/exposure --seeds 0,1,2 \\
-        --setting no-compensation:frontend.flow.exposure_gate=0
+        --setting default: --setting exposure-compensation:frontend.flow.exposure_gate=0.0025
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ EFFECTS = {
     "hand-held": {"noise_sigma": 2.0, "exposure_jitter": 0.3, "motion_blur": 0.5},
 }
 SCENES = ("corridor", "atlanta")
-DEFAULT_SETTINGS = ["default:", "no-exposure-compensation:frontend.flow.exposure_gate=0"]
+DEFAULT_SETTINGS = ["default:", "exposure-compensation:frontend.flow.exposure_gate=0.0025"]
 MIN_VIEWS = 3
 MIN_PARALLAX_DEG = 2.0
 FAR_PX = 3.0

@@ -10,6 +10,7 @@ import pytest
 from papl_mapper.frontend.klt import FlowConfig, exposure_gain, track_klt
 
 W, H = 320, 240
+ON = FlowConfig(exposure_gate=0.0025)
 SHIFT = np.array([2.3, -1.7])
 
 
@@ -57,7 +58,7 @@ def test_tracks_hold_under_an_exposure_change() -> None:
     prev, cur = _pair(1.06)
     uv = _corners(prev)
     truth = uv + SHIFT
-    on, ok_on, gain = track_klt(prev, cur, uv, FlowConfig(), W, H)
+    on, ok_on, gain = track_klt(prev, cur, uv, ON, W, H)
     off, ok_off, gain_off = track_klt(prev, cur, uv, FlowConfig(exposure_gate=0.0), W, H)
     assert abs(gain - 1.06) < 0.005 and gain_off == 1.0
     both = ok_on & ok_off
@@ -72,12 +73,21 @@ def test_tracks_hold_under_an_exposure_change() -> None:
     assert error(on) < 0.4 * error(off)
 
 
+def test_off_by_default() -> None:
+    prev, cur = _pair(1.06)
+    uv = _corners(prev)
+    on, _, gain = track_klt(prev, cur, uv, FlowConfig(), W, H)
+    off, _, _ = track_klt(prev, cur, uv, FlowConfig(exposure_gate=0.0), W, H)
+    assert gain == 1.0
+    np.testing.assert_array_equal(on, off)
+
+
 def test_no_change_below_the_gate() -> None:
     """Constant exposure leaves the tracks exactly as LK without compensation finds them."""
     prev, cur = _pair(1.0)
     uv = _corners(prev)
-    on, ok_on, gain = track_klt(prev, cur, uv, FlowConfig(), W, H)
+    on, ok_on, gain = track_klt(prev, cur, uv, ON, W, H)
     off, ok_off, _ = track_klt(prev, cur, uv, FlowConfig(exposure_gate=0.0), W, H)
-    assert abs(gain - 1.0) <= FlowConfig().exposure_gate
+    assert abs(gain - 1.0) <= ON.exposure_gate
     np.testing.assert_array_equal(on, off)
     np.testing.assert_array_equal(ok_on, ok_off)

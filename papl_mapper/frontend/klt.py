@@ -29,11 +29,12 @@ class FlowConfig:
     predict: bool = True
     """Start LK from the image motion of the previous frame pair (a homography fitted to its flow),
     so fast turns, whose flow exceeds what the pyramid can find from zero, keep their tracks."""
-    exposure_gate: float = 0.0025
+    exposure_gate: float = 0.0
     """Compensate an exposure change between the two images (a relative gain, `exposure_gain`) larger
-    than this: LK assumes constant brightness, and on low-contrast texture its tracks slide under a
-    changing gain. 0.25%: above the 0.1-0.23% the gain reads on renders without exposure changes, so
-    recordings of constant exposure are tracked exactly as without it. 0 turns it off."""
+    than this; 0 never does. LK assumes constant brightness, and on low-contrast texture its tracks
+    slide under a changing gain; 0.0025 keeps them (above the 0.1-0.25% the gain reads without any
+    exposure change). Off by default: the tracks are closer to the ground truth with it, but the
+    maps of KITTI and of the demo came out less accurate (benchmarks/results/notes.md)."""
 
 
 def predict_flow(flow_from: np.ndarray, flow_to: np.ndarray) -> np.ndarray | None:
