@@ -38,7 +38,7 @@ def test_klt_recovers_known_shift(noise, tol):
     b = _view(tex, 2.3, -1.7, noise, 2)  # content moves by (-2.3, +1.7) in the image
     pts = cv2.goodFeaturesToTrack(a, 200, 0.01, 10).reshape(-1, 2)
     pts = pts[(pts[:, 0] > 10) & (pts[:, 0] < W - 10) & (pts[:, 1] > 10) & (pts[:, 1] < H - 10)]
-    new, ok = track_klt(a, b, pts, FlowConfig(), W, H)
+    new, ok, _ = track_klt(a, b, pts, FlowConfig(), W, H)
     assert ok.mean() > 0.95
     err = np.linalg.norm(new[ok] - pts[ok] - [-2.3, 1.7], axis=1)
     assert np.median(err) < tol
@@ -50,7 +50,7 @@ def test_forward_backward_check_drops_occluded_points():
     b = _view(tex, 1.0, 0.0)
     b[100:200, 100:200] = _view(_texture(7), 0, 0)[100:200, 100:200]  # a different patch: occlusion
     pts = np.array([[150.0, 150.0], [160, 140], [300, 250], [350, 100]], np.float32)
-    _, ok = track_klt(a, b, pts, FlowConfig(), W, H)
+    _, ok, _ = track_klt(a, b, pts, FlowConfig(), W, H)
     assert list(ok) == [False, False, True, True]
 
 
