@@ -32,8 +32,8 @@ class FlowConfig:
     exposure_gate: float = 0.0
     """Compensate an exposure change between the two images (a relative gain, `exposure_gain`) larger
     than this; 0 never does. LK assumes constant brightness, and on low-contrast texture its tracks
-    slide under a changing gain; 0.0025 keeps them (above the 0.1-0.25% the gain reads without any
-    exposure change). Off by default: the tracks are closer to the ground truth with it, but the
+    slide under a changing gain; 0.0025 keeps them and stays above what the gain reads where the
+    exposure is constant. Off by default: the tracks are closer to the ground truth with it, but the
     maps of KITTI and of the demo came out less accurate (benchmarks/results/notes.md)."""
 
 
