@@ -24,6 +24,7 @@ from machine import machine_info
 
 from papl_mapper.frontend.camera import read_camera_file
 from papl_mapper.frontend.features import FeatureConfig, SiftDetector, match_pair
+from papl_mapper.geometry.two_view import sampson_px
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "real"
@@ -61,16 +62,6 @@ DETECTORS = {
 }
 
 
-def _sampson_px(E: np.ndarray, pa: np.ndarray, pb: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Sampson distance (pixels) of matched pixels to the epipolar geometry of E."""
-    F = np.linalg.inv(K).T @ E @ np.linalg.inv(K)
-    xa = np.column_stack([pa, np.ones(len(pa))])
-    xb = np.column_stack([pb, np.ones(len(pb))])
-    Fa, Ftb = xa @ F.T, xb @ F
-    num = np.sum(xb * Fa, axis=1) ** 2
-    return np.sqrt(num / (Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2))
-
-
 def _verified(a, b, norm, K) -> tuple[int, float]:
     """Verified matches of two images and the median Sampson distance of the inliers (px)."""
     if norm is None:
@@ -88,7 +79,7 @@ def _verified(a, b, norm, K) -> tuple[int, float]:
     if mask is None or E is None:
         return 0, float("nan")
     ok = mask.ravel().astype(bool)
-    return int(ok.sum()), float(np.median(_sampson_px(E[:3], pa[ok], pb[ok], K)))
+    return int(ok.sum()), float(np.median(sampson_px(E[:3], pa[ok], pb[ok], K)))
 
 
 def main() -> int:

@@ -35,7 +35,9 @@ from papl_mapper.eval.trajectory import associate
 from papl_mapper.frontend import process
 from papl_mapper.frontend.camera import camera_for_recording
 from papl_mapper.frontend.video import open_recording
+from papl_mapper.geometry.se3 import skew
 from papl_mapper.geometry.triangulation import triangulate_points
+from papl_mapper.geometry.two_view import sampson_px
 from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.synth import SynthConfig, generate
 from papl_mapper.tracks import Tracks
@@ -86,10 +88,6 @@ def _gt_poses(tracks: Tracks, gt_path: Path) -> tuple[np.ndarray, np.ndarray]:
     return T, has
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-
-
 def measure(tracks: Tracks, T_wc: np.ndarray, has_gt: np.ndarray) -> dict:
     """Reprojection and epipolar errors of the point tracks under the ground-truth poses (see module doc)."""
     K = tracks.camera.K
@@ -107,7 +105,6 @@ def measure(tracks: Tracks, T_wc: np.ndarray, has_gt: np.ndarray) -> dict:
     worst = np.zeros(len(ids))
     np.maximum.at(worst, inv[used], err[used])
     # consecutive frames: Sampson distance of the tracks both hold to the ground-truth epipolar geometry
-    K_inv = np.linalg.inv(K)
     pair_medians = []
     for f in range(len(tracks) - 1):
         if not (has_gt[f] and has_gt[f + 1]):
@@ -117,13 +114,10 @@ def measure(tracks: Tracks, T_wc: np.ndarray, has_gt: np.ndarray) -> dict:
         T21 = np.linalg.inv(T_wc[f + 1]) @ T_wc[f]
         if len(common) < 8 or np.linalg.norm(T21[:3, 3]) < 1e-9:
             continue
-        F = K_inv.T @ _skew(T21[:3, 3]) @ T21[:3, :3] @ K_inv
-        x1 = np.column_stack([tracks.point_uv[a][ia], np.ones(len(common))])
-        x2 = np.column_stack([tracks.point_uv[b][ib], np.ones(len(common))])
-        Fx1, Ftx2 = x1 @ F.T, x2 @ F
-        num = np.abs(np.sum(x2 * Fx1, axis=1))
-        den = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
-        pair_medians.append(float(np.median(num / den)))
+        E = skew(T21[:3, 3]) @ T21[:3, :3]
+        pair_medians.append(
+            float(np.median(sampson_px(E, tracks.point_uv[a][ia], tracks.point_uv[b][ib], K)))
+        )
     return {
         "tracks_measured": int(ok.sum()),
         "reprojection_median_px": float(np.median(err[used])) if used.any() else float("nan"),

@@ -26,9 +26,11 @@ def _pair(gain: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """8-bit frames prev and cur: cur is prev moved by SHIFT and seen with `gain` times the exposure."""
     t = _texture(seed)
     moved = cv2.warpAffine(t, np.float32([[1, 0, SHIFT[0]], [0, 1, SHIFT[1]]]), (W, H), flags=cv2.INTER_CUBIC)
-    return np.clip(np.round(t), 0, 255).astype(np.uint8), np.clip(np.round(moved * gain), 0, 255).astype(
-        np.uint8
-    )
+    return _8bit(t), _8bit(moved * gain)
+
+
+def _8bit(img: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
 def _corners(img: np.ndarray) -> np.ndarray:

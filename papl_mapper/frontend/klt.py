@@ -119,7 +119,8 @@ def track_klt(
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.max_iterations, config.epsilon)
     lk = {"winSize": win, "maxLevel": level, "criteria": crit}
     seeded = {**lk, "flags": cv2.OPTFLOW_USE_INITIAL_FLOW}
-    if motion is not None and config.predict:
+    predicted = motion is not None and config.predict
+    if predicted:
         guess = cv2.perspectiveTransform(p0, motion).astype(np.float32)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, guess, **seeded)
     else:
@@ -132,7 +133,7 @@ def track_klt(
             gain = measured
             prev = cv2.convertScaleAbs(prev, alpha=gain)  # prev as cur's exposure would have seen it
             p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, p1, **seeded)
-    if motion is not None and config.predict:
+    if predicted:
         p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), **seeded)
     else:
         p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **lk)

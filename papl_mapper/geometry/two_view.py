@@ -1,4 +1,5 @@
-"""OpenCV's essential-matrix estimation with degenerate input reported as no model.
+"""OpenCV's essential-matrix estimation with degenerate input reported as no model, and the pixel
+Sampson distance of matches to an essential matrix.
 
 Matches that fit no unique essential matrix (a camera standing still, a pure rotation, exact and
 noise-free) make OpenCV 5.1's five-point solver raise (`solvePoly`'s assertion on a vanishing leading
@@ -26,3 +27,15 @@ def find_essential(
         return cv2.findEssentialMat(pts_a, pts_b, K, method, confidence, threshold_px)
     except cv2.error:
         return None, None
+
+
+def sampson_px(E: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(N,) Sampson distances (pixels) of matched pixels (N, 2 each) to the epipolar geometry of E
+    (x_b^T E x_a = 0 in normalised coordinates) under camera K."""
+    K_inv = np.linalg.inv(K)
+    F = K_inv.T @ E @ K_inv
+    xa = np.column_stack([pts_a, np.ones(len(pts_a))])
+    xb = np.column_stack([pts_b, np.ones(len(pts_b))])
+    Fa, Ftb = xa @ F.T, xb @ F
+    num = np.sum(xb * Fa, axis=1) ** 2
+    return np.sqrt(num / (Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2))

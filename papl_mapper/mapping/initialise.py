@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from papl_mapper.geometry.se3 import bearings, rotation_angle_deg, rotation_between_rays
+from papl_mapper.geometry.se3 import bearings, rotation_angle_deg, rotation_between_rays, skew
 from papl_mapper.geometry.two_view import find_essential
 
 log = logging.getLogger(__name__)
@@ -101,13 +101,9 @@ def _check_pose(
     return int(good.sum()), good, X, median
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
 def sampson_errors(R_21: np.ndarray, t_21: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """(N,) first-order geometric (Sampson) distances of normalised matches to E = [t]x R."""
-    E = _skew(t_21) @ R_21
+    E = skew(t_21) @ R_21
     h1 = np.column_stack([x1, np.ones(len(x1))])
     h2 = np.column_stack([x2, np.ones(len(x2))])
     Ex1 = h1 @ E.T
