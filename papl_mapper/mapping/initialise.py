@@ -11,6 +11,7 @@ both cameras; otherwise `ok` is False and `reason` says why, so the caller can t
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -43,6 +44,10 @@ class InitConfig:
     """A pair whose matches a pure rotation explains to this median angle has no parallax (turn in place)."""
     ambiguity_deg: float = 2.0
     """Two pose hypotheses are different when their rotations differ by more than this."""
+    max_rotation_std_deg: float = 1.0
+    """Largest 1-sigma uncertainty of the relative rotation (matches at 1 px): the points of a pair
+    crowded into a narrow strip of the image fit an essential matrix that leaves rotation and
+    translation entangled, and the map built on it drifts from the start."""
 
 
 @dataclass
@@ -62,6 +67,10 @@ class InitResult:
     """Triangulated points with at least `strong_parallax_deg` of parallax: how good the pair is."""
     rotation_only: bool = False
     """The matches agree with a pure rotation (`R_21`): no baseline to triangulate from."""
+    rotation_std_deg: float = float("nan")
+    """1-sigma uncertainty of `R_21` from the triangulated matches at 1 px (`relative_pose_std`)."""
+    direction_std_deg: float = float("nan")
+    """...and of the direction of `t_21`."""
 
 
 def triangulate_normalised(
@@ -113,22 +122,50 @@ def sampson_errors(R_21: np.ndarray, t_21: np.ndarray, x1: np.ndarray, x2: np.nd
     return num / np.sqrt(np.maximum(den, 1e-300))
 
 
-def refine_relative_pose(
-    R_21: np.ndarray, t_21: np.ndarray, x1: np.ndarray, x2: np.ndarray, scale: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Minimise the robust Sampson error over (R, unit t): 5 DoF, Huber at `scale` (normalised units)."""
+def _pose_update(R_21: np.ndarray, t_21: np.ndarray) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """(R, unit t) at 5 local coordinates: a rotation vector applied on the left, and a step of t on the
+    tangent plane of the unit sphere (renormalised)."""
     t0 = t_21 / np.linalg.norm(t_21)
     basis = np.linalg.svd(t0.reshape(1, 3))[2][1:]  # (2, 3) tangent of the unit sphere at t0
 
     def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        R = cv2.Rodrigues(p[:3])[0] @ R_21
         t = t0 + p[3:] @ basis
-        return R, t / np.linalg.norm(t)
+        return cv2.Rodrigues(p[:3])[0] @ R_21, t / np.linalg.norm(t)
 
+    return unpack
+
+
+def refine_relative_pose(
+    R_21: np.ndarray, t_21: np.ndarray, x1: np.ndarray, x2: np.ndarray, scale: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Minimise the robust Sampson error over (R, unit t): 5 DoF, Huber at `scale` (normalised units)."""
+    unpack = _pose_update(R_21, t_21)
     sol = least_squares(
         lambda p: sampson_errors(*unpack(p), x1, x2), np.zeros(5), loss="huber", f_scale=scale
     )
     return unpack(sol.x)
+
+
+def relative_pose_std(
+    R_21: np.ndarray, t_21: np.ndarray, x1: np.ndarray, x2: np.ndarray, sigma: float
+) -> tuple[float, float]:
+    """1-sigma uncertainty (deg) of the rotation and of the translation direction of a relative pose
+    explained by normalised matches (N, 2) whose Sampson errors have deviation `sigma`: the largest
+    axes of the Gauss-Newton covariance over the 5 DoF (central differences; inf where singular)."""
+    unpack = _pose_update(R_21, t_21)
+    h = 1e-6
+    J = np.empty((len(x1), 5))
+    for k in range(5):
+        d = np.zeros(5)
+        d[k] = h
+        J[:, k] = (sampson_errors(*unpack(d), x1, x2) - sampson_errors(*unpack(-d), x1, x2)) / (2 * h)
+    try:
+        cov = np.linalg.inv(J.T @ J) * sigma**2
+    except np.linalg.LinAlgError:
+        return float("inf"), float("inf")
+    rot = np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
+    direction = np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
+    return float(rot), float(direction)
 
 
 def _homography_poses(H: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -230,6 +267,7 @@ def initialise_two_view(
             gate = np.abs(sampson_errors(R, t, x1, x2)) < thr
             n_good, good, X, median = _check_pose(R, t, x1, x2, gate, cfg)
     par = parallax_deg(R, t, X[good]) if good.any() else np.zeros(0)
+    rot_std, dir_std = relative_pose_std(R, t, x1[good], x2[good], 1.0 / focal_px)
     result = InitResult(
         ok=False,
         strong_points=int((par >= cfg.strong_parallax_deg).sum()),
@@ -241,13 +279,18 @@ def initialise_two_view(
         model=name,
         inliers=n_e if name == "essential" else n_h,
         median_parallax_deg=median,
+        rotation_std_deg=rot_std,
+        direction_std_deg=dir_std,
     )
+    fixed = f"rotation {rot_std:.2f} deg, translation direction {dir_std:.1f} deg (1 sigma)"
     if median < cfg.min_parallax_deg:
         result.reason = f"median parallax {median:.2f} deg < {cfg.min_parallax_deg} deg: baseline too short"
     elif n_good < cfg.min_triangulated:
         result.reason = f"only {n_good} points triangulated in front of both views"
+    elif rot_std > cfg.max_rotation_std_deg:
+        result.reason = f"{name}: relative pose not fixed by its {n_good} points: {fixed}"
     else:
         result.ok = True
-        result.reason = f"{name}: {n_good} points, median parallax {median:.2f} deg"
+        result.reason = f"{name}: {n_good} points, median parallax {median:.2f} deg, {fixed}"
     log.debug("two-view init: %s", result.reason)
     return result
