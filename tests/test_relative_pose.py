@@ -13,14 +13,18 @@ from papl_mapper.tracks import Tracks
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
 
 
-def _two_views(noise_px: float, seed: int = 0, n: int = 300):
-    """Frame 0 (posed) and frame 1 a wide step away; n shared tracks, world = frame 0 scaled by 2."""
+def _two_views(noise_px: float, seed: int = 0, n: int = 300, strip: bool = False):
+    """Frame 0 (posed) and frame 1 a wide step away; n shared tracks, world = frame 0 scaled by 2.
+    With `strip`, the points fill a strip 0.1 wide and 2 deep and frame 1 turns 20 deg on a short step."""
     rng = np.random.default_rng(seed)
-    X = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(-2, 2, n), rng.uniform(4, 9, n)])
+    if strip:
+        X = np.column_stack([rng.uniform(-1.0, -0.9, n), rng.uniform(-1.5, 1.5, n), rng.uniform(2.5, 4.5, n)])
+    else:
+        X = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(-2, 2, n), rng.uniform(4, 9, n)])
     T0 = np.eye(4)
     T1 = np.eye(4)
-    T1[:3, :3] = so3_exp(np.array([0.02, -0.25, 0.03]))
-    T1[:3, 3] = [-0.8, 0.05, -0.3]
+    T1[:3, :3] = so3_exp(np.array([0.0, -0.35, 0.0]) if strip else np.array([0.02, -0.25, 0.03]))
+    T1[:3, 3] = [0.15, 0.0, -0.05] if strip else [-0.8, 0.05, -0.3]
     uv = []
     for T in (T0, T1):
         Xc = X @ T[:3, :3].T + T[:3, 3]
@@ -98,3 +102,17 @@ def test_a_pair_with_as_few_shared_tracks_as_a_verified_feature_pair_registers()
     tracks, X, _ = _two_views(0.5, seed=3, n=20)
     refused = register_relative(tracks, 1, 0, np.eye(4), {i: X[i] for i in range(6)}, RelativePoseConfig())
     assert not refused.ok
+
+
+def test_matches_in_a_narrow_strip_are_refused_as_not_fixed():
+    """The relative rotation of matches crowded into a strip of the image is degrees uncertain: the frame
+    is refused, not posed off by as much (the gate is off in the loose config to show it)."""
+    tracks, X, T1 = _two_views(1.0, seed=2, n=110, strip=True)
+    mapped = {i: X[i] for i in range(20)}
+    res = register_relative(tracks, 1, 0, np.eye(4), mapped, RelativePoseConfig())
+    assert not res.ok and "not fixed" in res.reason
+    loose = register_relative(
+        tracks, 1, 0, np.eye(4), mapped, RelativePoseConfig(max_rotation_std_deg=np.inf)
+    )
+    assert loose.ok, loose.reason
+    assert rotation_angle_deg(loose.T_cw[:3, :3], T1[:3, :3]) > 3.0

@@ -1,5 +1,5 @@
-"""OpenCV's essential-matrix estimation with degenerate input reported as no model, and the pixel
-Sampson distance of matches to an essential matrix.
+"""OpenCV's essential-matrix estimation with degenerate input reported as no model, the pixel
+Sampson distance of matches to an essential matrix, and pixels to normalised coordinates.
 
 Matches that fit no unique essential matrix (a camera standing still, a pure rotation, exact and
 noise-free) make OpenCV 5.1's five-point solver raise (`solvePoly`'s assertion on a vanishing leading
@@ -11,6 +11,11 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
+
+def normalised(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of an undistorted pinhole camera K in normalised coordinates (K^-1 applied)."""
+    return (uv - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
 
 
 def find_essential(

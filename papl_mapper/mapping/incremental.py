@@ -19,6 +19,7 @@ from papl_mapper.frontend.descriptors import match_descriptors
 from papl_mapper.geometry.se3 import invert, rotation_angle_deg, similarity_T_cw
 from papl_mapper.geometry.similarity import Sim3, umeyama
 from papl_mapper.geometry.triangulation import max_reprojection_px, triangulate_points
+from papl_mapper.geometry.two_view import normalised
 from papl_mapper.mapping.initialise import InitConfig, initialise_two_view
 from papl_mapper.mapping.point_store import PointStore
 from papl_mapper.mapping.pose_refine import RegistrationDirections, frame_directions
@@ -131,10 +132,6 @@ class Registration:
 ProgressCallback = Callable[[int, int, str], None]
 
 
-def _normalised(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
-    return (uv - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
-
-
 def _common(tracks: Tracks, f1: int, f2: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     id1, uv1 = tracks.points_in(f1)
     id2, uv2 = tracks.points_in(f2)
@@ -210,7 +207,7 @@ def _initialise(
         for b in range(a + 1, min(len(keyframes), a + 1 + cfg.init_search_keyframes)):
             f1, f2 = int(keyframes[a]), int(keyframes[b])
             common, uv1, uv2 = _common(tracks, f1, f2)
-            res = initialise_two_view(_normalised(uv1, K), _normalised(uv2, K), K[0, 0], cfg.init, seed)
+            res = initialise_two_view(normalised(uv1, K), normalised(uv2, K), K[0, 0], cfg.init, seed)
             if not res.ok:
                 log.debug("init %d-%d: %s", f1, f2, res.reason)
                 continue

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from papl_mapper.geometry.two_view import find_essential
+from papl_mapper.geometry.two_view import find_essential, normalised
+from papl_mapper.mapping.initialise import relative_pose_std
 from papl_mapper.mapping.tracking import PnPResult
 from papl_mapper.tracks import Tracks
 
@@ -41,6 +42,10 @@ class RelativePoseConfig:
     """Essential-matrix inlier threshold."""
     max_reprojection_px: float = 3.0
     """Largest reprojection error, in the frame, of a mapped point that agrees."""
+    max_rotation_std_deg: float = 1.0
+    """Largest 1-sigma uncertainty of the relative rotation from the verified matches at 1 px
+    (`initialise.relative_pose_std`), as for initialisation: matches crowded into a narrow strip of
+    the image fit an essential matrix that entangles rotation and translation."""
 
 
 def _ray_scales(xf: np.ndarray, Xg: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -76,6 +81,12 @@ def register_relative(
     if inl.sum() < cfg.min_matches:
         return PnPResult(False, reason=f"{int(inl.sum())} matches in front of both views")
     t = t.ravel() / np.linalg.norm(t)
+    x_g, x_f = (normalised(uv[i][inl], K) for uv, i in ((uv_g, i_g), (uv_f, i_f)))
+    rot_std, _ = relative_pose_std(R, t, x_g, x_f, 1.0 / K[0, 0])
+    if rot_std > cfg.max_rotation_std_deg:
+        return PnPResult(
+            False, reason=f"relative rotation to {g} not fixed by its matches ({rot_std:.2f} deg)"
+        )
     mapped = np.array([c in points_w for c in common.tolist()], bool) & inl
     if mapped.sum() < cfg.min_scale_points:
         return PnPResult(False, reason=f"{int(mapped.sum())} mapped points to scale the step")
@@ -107,5 +118,6 @@ def register_relative(
         T_cw=T_cw,
         inliers=inliers[np.array([t in points_w for t in id_f.tolist()], bool)],  # rows of the mapped ids
         rms_px=rms,
-        reason=f"relative pose to keyframe {g}: {int(inl.sum())} matches, {int(good.sum())} scale points",
+        reason=f"relative pose to keyframe {g}: {int(inl.sum())} matches, {int(good.sum())} scale points, "
+        f"rotation {rot_std:.2f} deg (1 sigma)",
     )
