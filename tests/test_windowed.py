@@ -10,8 +10,8 @@ from papl_mapper.mapping.assemble import assemble_map, cull_observations
 from papl_mapper.mapping.incremental import IncrementalConfig, register_keyframes
 from papl_mapper.mapping.lines import LineEstimates
 from papl_mapper.mapping.windowed import WindowedRefiner
-from papl_mapper.tracks import PointRows
-from tests.test_mapping_incremental import make_tracks
+from papl_mapper.tracks import PointRows, Tracks
+from tests.test_mapping_incremental import CAM, _look_T_cw, make_tracks
 
 EXACT = 1e-9  # the same computation on the same numbers
 
@@ -92,3 +92,64 @@ def test_keyframes_do_not_depend_on_how_many_mapped_points_are_outliers():
         chosen.append(set(reg.frames))
     # the frontend's 8 and a few for tracks entering the view (the old rule: 40 with the tight threshold)
     assert len(chosen[0]) <= 8 + 7 and abs(len(chosen[0]) - len(chosen[1])) <= 2, chosen
+
+
+def _turn_tracks(seed: int, noise_px: float = 1.0, life: int = 10):
+    """An L-shaped walk (0.04 per frame, then a 90 deg turn over 22 frames at 0.02 per frame, then on)
+    through random points, each point's track restarting every `life` frames as real tracks end: in
+    the turn the map is starved and new points come at little parallax."""
+    rng = np.random.default_rng(seed)
+    c, yaw, centres, yaws = np.zeros(3), 0.0, [], []
+    for f in range(100):
+        turning = 40 <= f < 62
+        yaw += np.radians(90 / 22) if turning else 0.0
+        c = c + (0.02 if turning else 0.04) * np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        centres.append(c.copy())
+        yaws.append(yaw)
+    pts = np.column_stack([rng.uniform(-4, 8, 1500), rng.uniform(-6, 8, 1500), rng.uniform(-1.5, 1.5, 1500)])
+    pts = pts[np.min(np.linalg.norm(pts[:, None, :2] - np.array(centres)[None, :, :2], axis=2), axis=1) > 1.5]
+    T_cw = np.stack([_look_T_cw(c, y) for c, y in zip(centres, yaws, strict=True)])
+    born = rng.integers(0, life, len(pts))
+    pf, pt, puv = [], [], []
+    for f, T in enumerate(T_cw):
+        Xc = pts @ T[:3, :3].T + T[:3, 3]
+        uv = Xc @ CAM.K.T
+        uv = uv[:, :2] / uv[:, 2:3]
+        idx = np.flatnonzero((Xc[:, 2] > 0.3) & (uv >= 0).all(axis=1) & (uv[:, 0] < 640) & (uv[:, 1] < 480))
+        pf.append(np.full(len(idx), f))
+        pt.append(idx + len(pts) * ((f + born[idx]) // life))
+        puv.append(uv[idx] + rng.normal(0, noise_px, (len(idx), 2)))
+    n = len(T_cw)
+    empty = np.zeros(0, np.int64)
+    tracks = Tracks(
+        CAM, np.arange(n), np.arange(n) / 30.0, np.ones(n, bool), np.concatenate(pf), np.concatenate(pt),
+        np.concatenate(puv), empty, empty, np.zeros((0, 4)), empty, np.full((n, 3, 3), np.nan),
+    )  # fmt: skip
+    return tracks, T_cw
+
+
+def _scale_after_turn(reg, T_cw) -> float:
+    """Length of the estimated path after the turn over before it, against the truth's ratio."""
+    C = {f: np.linalg.inv(T)[:3, 3] for f, T in reg.poses().items()}
+    frames = np.array(sorted(C))
+    C_gt = np.linalg.inv(T_cw)[:, :3, 3]
+
+    def length(a: int, b: int) -> float:
+        a, b = frames[frames >= a][0], frames[frames <= b][-1]
+        return np.linalg.norm(C[b] - C[a]) / np.linalg.norm(C_gt[b] - C_gt[a])
+
+    return length(70, 95) / length(5, 35)
+
+
+def test_refining_every_keyframe_while_starved_holds_the_scale_through_a_turn():
+    # refined every 10 keyframes, the low-parallax depths of the turn compound: the walk after it
+    # shrinks to a fifth; refined after each keyframe while starved, most of the scale is kept
+    ratios = []
+    for every in (10, 1):
+        tracks, T_cw = _turn_tracks(seed=0)
+        refine = WindowedRefiner(tracks, BAConfig(relative_error_tol=1e-3), 10, 3.0)
+        reg = register_keyframes(tracks, IncrementalConfig(starved_refine_every=every), refine=refine)
+        assert len(reg.poses()) == len(tracks)
+        ratios.append(_scale_after_turn(reg, T_cw))
+    assert ratios[0] < 0.35
+    assert ratios[1] > 0.55

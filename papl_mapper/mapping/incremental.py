@@ -75,6 +75,10 @@ class IncrementalConfig:
     """...if at least this many frames have passed since the last keyframe."""
     refine_every: int = 10
     """New keyframes between two calls of the refinement callback (the windowed BA; 0: never)."""
+    starved_refine_every: int = 1
+    """...while the keyframes see fewer than `starved_below` mapped points (a turn): the points they
+    add have little parallax, and their depths, biased low, scale the next frames' poses; refined
+    only every `refine_every` keyframes, that bias compounds into a scale drift through the turn."""
     max_lost_frames: int = 5
     """Frames in a row that fail to register before tracking counts as lost and a new segment starts."""
     segment_overlap_frames: int = 30
@@ -365,7 +369,8 @@ def _extend(
                     rows.rename(rv.fused)  # the loop renamed tracks
                     last_T = reg.T_cw[f]
             since_refine += 1
-            if refine is not None and cfg.refine_every > 0 and since_refine >= cfg.refine_every:
+            every = cfg.starved_refine_every if len(res.inliers) < cfg.starved_below else cfg.refine_every
+            if refine is not None and cfg.refine_every > 0 and since_refine >= every:
                 refine(reg)
                 last_T = reg.T_cw[f]
                 since_refine = 0
