@@ -99,23 +99,23 @@ def test_pnp_refuses_too_few_points():
     assert not res.ok and "only 5" in res.reason
 
 
-def _strip_pair(seed, width):
-    """Matches of points `width` m wide and 2 m deep, seen after a 20 deg turn and a 0.16 m step."""
+def _strip_pair(seed, width, n=110, noise_px=1.0):
+    """Matches of n points `width` m wide and 2 m deep, seen after a 20 deg turn and a 0.16 m step:
+    x1, x2 (in view in both), R, t and the random generator."""
     rng = np.random.default_rng(seed)
-    n = 110
     X = np.column_stack(
         [rng.uniform(-1.0, -1.0 + width, n), rng.uniform(-1.5, 1.5, n), rng.uniform(2.5, 4.5, n)]
     )
     R = cv2.Rodrigues(np.array([0.0, np.radians(-20), 0.0]))[0]
     t = np.array([0.15, 0.0, -0.05])
-    x1, x2 = _project_n(X, np.eye(3), np.zeros(3), rng, 1.0), _project_n(X, R, t, rng, 1.0)
+    x1, x2 = _project_n(X, np.eye(3), np.zeros(3), rng, noise_px), _project_n(X, R, t, rng, noise_px)
     seen = (np.abs(x1[:, 0]) < 0.7) & (np.abs(x2[:, 0]) < 0.7)
-    return x1[seen], x2[seen], R
+    return x1[seen], x2[seen], R, t, rng
 
 
 def test_pose_of_points_in_a_narrow_strip_is_refused_as_not_fixed():
     # every other check passes, but rotation and translation trade off: the pose is degrees off
-    x1, x2, R = _strip_pair(0, 0.1)
+    x1, x2, R, _, _ = _strip_pair(0, 0.1)
     loose = initialise_two_view(x1, x2, F, InitConfig(max_rotation_std_deg=np.inf))
     assert loose.ok, loose.reason
     assert np.degrees(np.linalg.norm(cv2.Rodrigues(loose.R_21 @ R.T)[0])) > 2.0
@@ -123,7 +123,7 @@ def test_pose_of_points_in_a_narrow_strip_is_refused_as_not_fixed():
     res = initialise_two_view(x1, x2, F)
     assert not res.ok and "not fixed" in res.reason
     # the same motion over points spread across the view: accepted, and right
-    x1, x2, R = _strip_pair(0, 3.0)
+    x1, x2, R, _, _ = _strip_pair(0, 3.0)
     res = initialise_two_view(x1, x2, F)
     assert res.ok, res.reason
     assert res.rotation_std_deg < 0.5
@@ -135,14 +135,7 @@ def test_relative_pose_std_predicts_the_spread_of_the_estimate(width, low, high)
     # rotation errors of the refined pose over many 1 px noise draws against the predicted 1-sigma: the
     # first-order covariance matches where the points fix the pose; where they barely do (a narrow
     # strip) the estimate is nonlinear and spreads wider than predicted, never narrower
-    rng = np.random.default_rng(5)
-    n = 150
-    X = np.column_stack(
-        [rng.uniform(-1.0, -1.0 + width, n), rng.uniform(-1.5, 1.5, n), rng.uniform(2.5, 4.5, n)]
-    )
-    R = cv2.Rodrigues(np.array([0.0, np.radians(-20), 0.0]))[0]
-    t = np.array([0.15, 0.0, -0.05])
-    x1c, x2c = _project_n(X, np.eye(3), np.zeros(3), rng, 0.0), _project_n(X, R, t, rng, 0.0)
+    x1c, x2c, R, t, rng = _strip_pair(5, width, n=150, noise_px=0.0)
     predicted, _ = relative_pose_std(R, t, x1c, x2c, 1.0 / F)
     errors = []
     for _ in range(150):
