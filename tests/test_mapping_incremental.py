@@ -34,6 +34,13 @@ def make_tracks(n_frames=60, noise_px=0.0, seed=0):
     centres = np.column_stack([1.5 * np.cos(2 * t), 1.5 * np.sin(2 * t), 0.05 * np.sin(9 * t)])
     yaws = 2 * t + 0.3
     T_cw = np.stack([_look_T_cw(c, y) for c, y in zip(centres, yaws, strict=True)])
+    return project_tracks(pts, T_cw, rng, noise_px, fps=10.0), T_cw, pts
+
+
+def project_tracks(pts, T_cw, rng, noise_px, fps, track_of=None):
+    """Point tracks of `pts` seen by cameras T_cw (every frame a keyframe, `fps` frames a second): each
+    point visible in front of a camera, at its projection plus `noise_px` of noise drawn from `rng`.
+    A point's track id is its index, or `track_of(frame, indices)` where tracks end and restart."""
     pf, pt, puv = [], [], []
     for f, T in enumerate(T_cw):
         Xc = pts @ T[:3, :3].T + T[:3, 3]
@@ -42,13 +49,13 @@ def make_tracks(n_frames=60, noise_px=0.0, seed=0):
         vis = (Xc[:, 2] > 0.3) & (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
         idx = np.flatnonzero(vis)
         pf.append(np.full(len(idx), f))
-        pt.append(idx)
+        pt.append(idx if track_of is None else track_of(f, idx))
         puv.append(uv[idx] + rng.normal(0, noise_px, (len(idx), 2)))
-    n = n_frames
-    tracks = Tracks(
+    n = len(T_cw)
+    return Tracks(
         CAM,
         np.arange(n),
-        np.arange(n) / 10.0,
+        np.arange(n) / fps,
         np.ones(n, bool),
         np.concatenate(pf),
         np.concatenate(pt),
@@ -59,7 +66,6 @@ def make_tracks(n_frames=60, noise_px=0.0, seed=0):
         np.zeros(0, np.int64),
         np.full((n, 3, 3), np.nan),
     )
-    return tracks, T_cw, pts
 
 
 def _umeyama_sim3(src, dst):

@@ -10,8 +10,8 @@ from papl_mapper.mapping.assemble import assemble_map, cull_observations
 from papl_mapper.mapping.incremental import IncrementalConfig, register_keyframes
 from papl_mapper.mapping.lines import LineEstimates
 from papl_mapper.mapping.windowed import WindowedRefiner
-from papl_mapper.tracks import PointRows, Tracks
-from tests.test_mapping_incremental import CAM, _look_T_cw, make_tracks
+from papl_mapper.tracks import PointRows
+from tests.test_mapping_incremental import _look_T_cw, make_tracks, project_tracks
 
 EXACT = 1e-9  # the same computation on the same numbers
 
@@ -110,21 +110,9 @@ def _turn_tracks(seed: int, noise_px: float = 1.0, life: int = 10):
     pts = pts[np.min(np.linalg.norm(pts[:, None, :2] - np.array(centres)[None, :, :2], axis=2), axis=1) > 1.5]
     T_cw = np.stack([_look_T_cw(c, y) for c, y in zip(centres, yaws, strict=True)])
     born = rng.integers(0, life, len(pts))
-    pf, pt, puv = [], [], []
-    for f, T in enumerate(T_cw):
-        Xc = pts @ T[:3, :3].T + T[:3, 3]
-        uv = Xc @ CAM.K.T
-        uv = uv[:, :2] / uv[:, 2:3]
-        idx = np.flatnonzero((Xc[:, 2] > 0.3) & (uv >= 0).all(axis=1) & (uv[:, 0] < 640) & (uv[:, 1] < 480))
-        pf.append(np.full(len(idx), f))
-        pt.append(idx + len(pts) * ((f + born[idx]) // life))
-        puv.append(uv[idx] + rng.normal(0, noise_px, (len(idx), 2)))
-    n = len(T_cw)
-    empty = np.zeros(0, np.int64)
-    tracks = Tracks(
-        CAM, np.arange(n), np.arange(n) / 30.0, np.ones(n, bool), np.concatenate(pf), np.concatenate(pt),
-        np.concatenate(puv), empty, empty, np.zeros((0, 4)), empty, np.full((n, 3, 3), np.nan),
-    )  # fmt: skip
+    tracks = project_tracks(
+        pts, T_cw, rng, noise_px, fps=30.0, track_of=lambda f, idx: idx + len(pts) * ((f + born[idx]) // life)
+    )
     return tracks, T_cw
 
 

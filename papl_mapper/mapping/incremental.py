@@ -143,19 +143,25 @@ def _common(tracks: Tracks, f1: int, f2: int) -> tuple[np.ndarray, np.ndarray, n
     return common, uv1[i1], uv2[i2]
 
 
+def _starved(res: PnPResult, cfg: IncrementalConfig) -> bool:
+    """Whether the frame `res` posed sees fewer than `starved_below` mapped points (its inlier mask has
+    one entry per mapped point it sees): a turn, where new points come at little parallax."""
+    return len(res.inliers) < cfg.starved_below
+
+
 def _triangulate_new(
-    tracks: Tracks, rows: PointRows, reg: Registration, frame: int, cfg: IncrementalConfig
+    tracks: Tracks, rows: PointRows, reg: Registration, frame: int, cfg: IncrementalConfig, starved: bool
 ) -> int:
     """Triangulate the point tracks seen in `frame` from all their registered keyframes (vectorised).
 
-    New tracks enter the map once their rays span `min_parallax_deg`; mapped ones are
-    re-triangulated when the new view widens their ray angle by a fifth, so early low-parallax
-    depths mature instead of dragging the scale. Returns the number of new points.
+    New tracks enter the map once their rays span `min_parallax_deg` (`starved_parallax_deg` where the
+    frame is `starved`); mapped ones are re-triangulated when the new view widens their ray angle by
+    a fifth, so early low-parallax depths mature instead of dragging the scale. Returns the number of
+    new points.
     """
     K = tracks.camera.K
     ids, _ = tracks.points_in(frame)
-    known = int(reg.points_w.has(ids).sum())
-    min_parallax = cfg.starved_parallax_deg if known < cfg.starved_below else cfg.min_parallax_deg
+    min_parallax = cfg.starved_parallax_deg if starved else cfg.min_parallax_deg
     ids = np.array(
         [t for t in ids.tolist() if reg.point_angle.get(t, 0.0) < cfg.mature_parallax_deg], np.int64
     )
@@ -358,7 +364,8 @@ def _extend(
             reg.T_cw[f] = res.T_cw
             reg.frames.append(f)
             last_keyframe = f
-            added = _triangulate_new(tracks, rows, reg, f, cfg)
+            starved = _starved(res, cfg)
+            added = _triangulate_new(tracks, rows, reg, f, cfg, starved)
             log.debug("keyframe %d: %s, %d new points", f, res.reason, added)
             if index is not None and tracks.is_keyframe[f]:
                 rv = find_revisit(
@@ -369,7 +376,7 @@ def _extend(
                     rows.rename(rv.fused)  # the loop renamed tracks
                     last_T = reg.T_cw[f]
             since_refine += 1
-            every = cfg.starved_refine_every if len(res.inliers) < cfg.starved_below else cfg.refine_every
+            every = cfg.starved_refine_every if starved else cfg.refine_every
             if refine is not None and cfg.refine_every > 0 and since_refine >= every:
                 refine(reg)
                 last_T = reg.T_cw[f]
@@ -394,7 +401,7 @@ def _extend(
         reg.T_cw[g] = res.T_cw
         reg.frames.append(g)
         if g < start:
-            _triangulate_new(tracks, rows, reg, g, cfg)
+            _triangulate_new(tracks, rows, reg, g, cfg, _starved(res, cfg))
     return max(f, f2)
 
 

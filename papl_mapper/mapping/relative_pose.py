@@ -81,7 +81,7 @@ def register_relative(
     if inl.sum() < cfg.min_matches:
         return PnPResult(False, reason=f"{int(inl.sum())} matches in front of both views")
     t = t.ravel() / np.linalg.norm(t)
-    x_g, x_f = (normalised(uv[i][inl], K) for uv, i in ((uv_g, i_g), (uv_f, i_f)))
+    x_g, x_f = normalised(uv_g[i_g][inl], K), normalised(uv_f[i_f][inl], K)
     rot_std, _ = relative_pose_std(R, t, x_g, x_f, 1.0 / K[0, 0])
     if rot_std > cfg.max_rotation_std_deg:
         return PnPResult(
