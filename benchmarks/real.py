@@ -31,6 +31,8 @@ the peer's.
     .venv/bin/python benchmarks/real.py --ablation points-only,orthonormal-lines,no-axis-management
     .venv/bin/python benchmarks/real.py --step 3                 # every 3rd image: real_step3.json
     .venv/bin/python benchmarks/real.py --repeat 3               # papl-map's wall: median of 3 runs
+    .venv/bin/python benchmarks/real.py --shuffle 0,1,2          # photo sets out of order: real_shuffled.json
+    .venv/bin/python benchmarks/real.py --ablation mapping.retry_lost=false   # any config key as a row
 
 Every sequence's images are read once before the first method runs, so that all methods find them in
 the page cache. Prints one table and writes benchmarks/results/real.json.
@@ -40,6 +42,10 @@ With --skip-colmap the COLMAP/GLOMAP records of a sequence are taken from the ex
 its input fingerprint (images, timestamps, intrinsics, ground truth) is unchanged.
 With --step N every method maps every N-th image (papl-map with `--step N`, the peers the same image
 list): the wide baselines of dropped frames or a faster walk, on the same ground truth.
+With --shuffle SEEDS each photo set is also mapped with its images in a random order per seed (a
+folder of symlinks named in that order, without timestamps.txt, as a folder of photos whose names do
+not follow the capture order; every method gets the same list); papl-map's frame times are mapped
+back to the photos' own. Videos are not shuffled.
 """
 
 from __future__ import annotations
@@ -79,6 +85,7 @@ CAMERA_FILES = ("camera.json", "calib.txt", "cameras.txt", "camera.yaml", "camer
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 MAX_TIME_DIFF_S = 0.01  # timestamp association, as evo's default and papl-map eval
 PHOTO_SET_INTERVAL_S = 0.5  # median frame interval above this: a photo set (exhaustive matching)
+FOLDER_FPS = 30.0  # papl-map's frame rate for a folder without timestamps.txt
 SEED = 0
 METHODS = ("papl", "colmap", "glomap")
 LABELS = {"papl": "papl-map", "colmap": "COLMAP", "glomap": "GLOMAP"}
@@ -98,10 +105,16 @@ class Sequence:
     width: int
     height: int
     step: int = 1  # every step-th image of the folder (papl-map --step; the peers get the same images)
+    shuffle: int | None = None  # the seed of the image order (`shuffled`); None: name order
+
+    @property
+    def label(self) -> str:
+        return self.name if self.shuffle is None else f"{self.name}_shuffle{self.shuffle}"
 
     @property
     def median_interval_s(self) -> float:
-        return float(np.median(np.diff(self.timestamps))) if len(self.timestamps) > 1 else float("nan")
+        stamps = np.sort(self.timestamps)
+        return float(np.median(np.diff(stamps))) if len(stamps) > 1 else float("nan")
 
     @property
     def matching(self) -> str:
@@ -109,7 +122,7 @@ class Sequence:
 
     def gt_path_length_m(self) -> float:
         """Ground-truth path length between the ground-truth poses matched to the first and last image."""
-        i_img, i_gt = associate(self.timestamps, self.gt.timestamps, MAX_TIME_DIFF_S)
+        i_img, i_gt = associate(np.sort(self.timestamps), self.gt.timestamps, MAX_TIME_DIFF_S)
         if len(i_gt) < 2:
             return float("nan")
         return self.gt.subset(np.arange(i_gt.min(), i_gt.max() + 1)).path_length()
@@ -119,7 +132,8 @@ class Sequence:
         h = hashlib.sha256()
         for n in self.names:
             h.update(f"{n}:{(self.images / n).stat().st_size};".encode())
-        for p in (self.images / "timestamps.txt", self.camera_file, self.folder / "groundtruth.tum"):
+        stamps = self.folder / "images" / "timestamps.txt"  # the folder's own, also for a shuffled list
+        for p in (stamps, self.camera_file, self.folder / "groundtruth.tum"):
             h.update(p.read_bytes())
         return h.hexdigest()
 
@@ -180,6 +194,30 @@ def every_nth(seq: Sequence, step: int) -> Sequence:
     return dataclasses.replace(seq, names=seq.names[::step], timestamps=seq.timestamps[::step], step=step)
 
 
+def shuffled(seq: Sequence, seed: int, root: Path) -> Sequence:
+    """The sequence with its images in a random order: a folder of symlinks `NNNN_<name>` under `root`
+    in that order and without timestamps.txt (papl-map then times frame k at k / 30 s)."""
+    order = np.random.default_rng(seed).permutation(len(seq.names))
+    images = root / f"{seq.name}_shuffle{seed}" / "images"
+    if images.exists():
+        shutil.rmtree(images)
+    images.mkdir(parents=True)
+    names = []
+    for k, i in enumerate(order):
+        names.append(f"{k:04d}_{seq.names[i]}")
+        (images / names[-1]).symlink_to((seq.images / seq.names[i]).resolve())
+    stamps = seq.timestamps[order]
+    return dataclasses.replace(seq, images=images, names=names, timestamps=stamps, shuffle=seed)
+
+
+def _retimed(seq: Sequence, est: Trajectory) -> Trajectory:
+    """papl-map's trajectory of a shuffled folder (frame k at k / 30 s) at the photos' own times."""
+    k = np.rint(est.timestamps * FOLDER_FPS).astype(int)
+    t = seq.timestamps[k]
+    order = np.argsort(t)
+    return Trajectory(t[order], est.T_wc[order])
+
+
 def accuracy(seq: Sequence, est: Trajectory) -> dict:
     """ATE after Sim(3) (Umeyama with scale) over the estimate's poses matched to the ground truth."""
     i_ref, i_est = associate_trajectories(seq.gt, est, MAX_TIME_DIFF_S)
@@ -237,11 +275,13 @@ def _one_line_error(stderr: str) -> str:
 
 
 def run_papl(seq: Sequence, out: Path, timeout_s: float, preset: str = "full") -> dict:
-    """`papl-map run --preset` as a subprocess, wall clock timed; a failure is recorded, not raised."""
+    """`papl-map run --preset` (or `--set`, for a preset of the form KEY=VALUE) as a subprocess, wall
+    clock timed; a failure is recorded, not raised."""
     if out.exists():
         shutil.rmtree(out)
     cmd = [str(PAPL), "run", str(seq.images), "--camera", str(seq.camera_file), "--out", str(out)]
-    cmd += ["--preset", preset] if preset != "full" else []
+    if preset != "full":
+        cmd += ["--set", preset] if "=" in preset else ["--preset", preset]
     cmd += ["--step", str(seq.step)] if seq.step > 1 else []
     rec: dict = {"command": " ".join(cmd), "loadavg_1m_at_start": _loadavg(), "frames_total": len(seq.names)}
     t0 = time.perf_counter()
@@ -262,7 +302,7 @@ def run_papl(seq: Sequence, out: Path, timeout_s: float, preset: str = "full") -
         rec.update(status="failed", error=f"{type(exc).__name__}: {exc}")
         return rec
     rec.update(status="ok", frames_posed=len(est), trajectory=str(traj_path))
-    rec.update(accuracy(seq, est))
+    rec.update(accuracy(seq, est if seq.shuffle is None else _retimed(seq, est)))
     try:
         summary = json.loads((out / "summary.json").read_text())
         counts = summary.get("counts", {})
@@ -520,7 +560,10 @@ def print_ablation(entries: dict[str, dict]) -> None:
             rec = e.get("papl_ablation", {}).get(p, {})
             cells.append(_f(rec.get("ate_rmse_m") if rec.get("status") == "ok" else None, ".4f", 18))
         print(f"{name:24} " + " ".join(cells))
-    print("ATE RMSE (m) after Sim(3); presets as `papl-map run --preset` (see `papl-map run --help`).")
+    print(
+        "ATE RMSE (m) after Sim(3); presets as `papl-map run --preset` (see `papl-map run --help`), "
+        "KEY=VALUE as `--set`."
+    )
 
 
 def _finite(v):
@@ -578,7 +621,14 @@ def main() -> int:
     ap.add_argument(
         "--ablation",
         default="",
-        help=f"papl-map presets also run on every sequence, comma-separated (e.g. {','.join(ABLATION)})",
+        help="papl-map presets (or config overrides KEY=VALUE) also run on every sequence, "
+        f"comma-separated (e.g. {','.join(ABLATION)})",
+    )
+    ap.add_argument(
+        "--shuffle",
+        default="",
+        help="comma-separated seeds: map each photo set with its images in that random order (all "
+        "methods); results go to real_shuffled.json unless --out",
     )
     args = ap.parse_args()
     if not args.data.is_dir():
@@ -589,6 +639,9 @@ def main() -> int:
         return 2
     if args.step > 1 and args.out == OUT:
         args.out = OUT.with_name(f"real_step{args.step}.json")
+    seeds = [int(v) for v in args.shuffle.split(",") if v.strip()]
+    if seeds and args.out == OUT:
+        args.out = OUT.with_name("real_shuffled.json")
     seqs = [every_nth(s, args.step) for s in discover(args.data)]
     if args.only:
         wanted = [s.strip() for s in args.only.split(",") if s.strip()]
@@ -597,6 +650,11 @@ def main() -> int:
             print(f"unknown sequence(s) {', '.join(unknown)}; have {', '.join(s.name for s in seqs)}")
             return 2
         seqs = [s for s in seqs if s.name in wanted]
+    if seeds:
+        videos = [s.name for s in seqs if s.matching != "exhaustive"]
+        if videos:
+            print(f"--shuffle: not shuffling the videos {', '.join(videos)} (photo sets only)")
+        seqs = [shuffled(s, k, args.out_dir) for s in seqs if s.matching == "exhaustive" for k in seeds]
     previous: dict = {}
     if args.out.is_file():
         try:
@@ -619,6 +677,7 @@ def main() -> int:
             "camera_file": seq.camera_file.name,
             "frames_total": len(seq.names),
             "step": seq.step,
+            **({"shuffle_seed": seq.shuffle, "image_order": seq.names} if seq.shuffle is not None else {}),
             "image_size_px": [seq.width, seq.height],
             "median_frame_interval_s": seq.median_interval_s,
             "matching": seq.matching,
@@ -626,14 +685,15 @@ def main() -> int:
             "fingerprint_sha256": fp,
             "commit": commit,
         }
-        print(f"{seq.name}: {len(seq.names)} images, {seq.matching} matching for the peers", flush=True)
+        print(f"{seq.label}: {len(seq.names)} images, {seq.matching} matching for the peers", flush=True)
         _warm_cache(seq)
-        entry["papl"] = run_papl_median(seq, args.out_dir / seq.name / "papl", args.papl_timeout, args.repeat)
+        scratch = args.out_dir / seq.label
+        entry["papl"] = run_papl_median(seq, scratch / "papl", args.papl_timeout, args.repeat)
         for preset in filter(None, args.ablation.split(",")):
-            rec = run_papl(seq, args.out_dir / seq.name / f"papl-{preset}", args.papl_timeout, preset)
+            rec = run_papl(seq, scratch / f"papl-{preset}", args.papl_timeout, preset)
             entry.setdefault("papl_ablation", {})[preset] = rec
         if args.skip_colmap:
-            old = previous.get(seq.name, {})
+            old = previous.get(seq.label, {})
             for peer in ("colmap", "glomap"):
                 if old.get(peer) and old.get("fingerprint_sha256") == fp:
                     entry[peer] = {
@@ -644,7 +704,7 @@ def main() -> int:
                     entry[peer] = {"status": "not run (--skip-colmap, no earlier result for these inputs)"}
         else:
             try:
-                peers = run_colmap(seq, args.out_dir / seq.name / "colmap")
+                peers = run_colmap(seq, args.out_dir / seq.label / "colmap")
             except Exception as exc:  # noqa: BLE001 - extraction/matching failure: rows, not the end
                 err = {
                     "status": "failed",
@@ -655,7 +715,7 @@ def main() -> int:
             for peer, rec in peers.items():
                 entry[peer] = {**rec, "commit": commit}
         entry["ratios"] = ratios(entry)
-        entries[seq.name] = entry
+        entries[seq.label] = entry
     print()
     print_table(entries)
     if args.ablation:

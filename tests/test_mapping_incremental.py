@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from papl_mapper.map import Camera
-from papl_mapper.mapping.incremental import register_keyframes
+from papl_mapper.mapping.incremental import IncrementalConfig, register_keyframes
 from papl_mapper.tracks import Tracks
 
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
@@ -283,3 +283,23 @@ def test_frames_after_the_last_registered_one_get_a_segment_of_their_own():
     assert set(range(37)) <= set(reg.poses())
     assert reg.segments_left_out == [(37, 39)]
     assert reg.lost == [37, 38, 39]
+
+
+def test_a_frame_out_of_order_is_registered_against_the_whole_map():
+    """Photos out of order: the walk's last view comes eleventh. The pass in frame order finds none of
+    its points mapped yet; tried again once the walk has mapped its place, it is posed there as a
+    keyframe (and with the retry off it stays lost)."""
+    _, T_cw, pts = make_tracks(n_frames=60)
+    order = [*range(10), 59, *range(10, 59)]
+    tracks = project_tracks(pts, T_cw[order], np.random.default_rng(1), 0.5, fps=10.0)
+    assert 10 in register_keyframes(tracks, IncrementalConfig(retry_lost=False)).lost
+    reg = register_keyframes(tracks)
+    assert not reg.lost
+    assert 10 in reg.T_cw
+    est = np.stack([-reg.T_cw[f][:3, :3].T @ reg.T_cw[f][:3, 3] for f in range(len(tracks))])
+    gt = np.stack([-T[:3, :3].T @ T[:3, 3] for T in T_cw[order]])
+    s, R, t = _umeyama_sim3(est, gt)
+    err = np.linalg.norm((s * (R @ est.T)).T + t - gt, axis=1)
+    path = np.linalg.norm(np.diff(gt[np.argsort(order)], axis=0), axis=1).sum()
+    assert err[10] < MAX_REL_POSITION_ERR * path
+    assert err.max() < MAX_REL_POSITION_ERR * path

@@ -99,6 +99,11 @@ class IncrementalConfig:
     """...and most any shared frame's rotation between the segments may differ from their mean."""
     merge_tolerance: float = 0.05
     """Largest point disagreement after the Sim(3), as a fraction of the map's median point spread."""
+    retry_lost: bool = True
+    """After the pass in frame order, try the frames it could not pose again against the whole map,
+    those seeing the most mapped points first, until none more registers: a photo of a place the pass
+    reached only later (photos out of order, a frame before a cut) is posed from the points mapped
+    there, instead of being left to the final map with few of its points triangulated."""
     track_lines: RegistrationLinesConfig = field(default_factory=RegistrationLinesConfig)
     """Line tracks triangulated from the keyframes so far: they refine each frame's pose with the points
     (when enabled) and pose the frames points cannot (`pnp.from_lines`)."""
@@ -300,6 +305,8 @@ def register_keyframes(
             "tracked points; try a recording with sideways or forward motion, or a lower --step"
         )
     reg = _merge_segments(segments, cfg, index, seed)
+    if cfg.retry_lost:
+        _register_lost(tracks, reg, cfg, seed)
     registered = reg.poses()
     reg.lost = [f for f in range(len(tracks)) if f not in registered]
     reg.frames.sort()
@@ -403,6 +410,39 @@ def _extend(
         if g < start:
             _triangulate_new(tracks, rows, reg, g, cfg, _starved(res, cfg))
     return max(f, f2)
+
+
+def _register_lost(tracks: Tracks, reg: Registration, cfg: IncrementalConfig, seed: int = 0) -> int:
+    """Pose the frames without one by PnP against the whole map, as keyframes that triangulate their
+    tracks: in sweeps over those frames, the ones seeing the most mapped points first, until a sweep
+    registers none (a frame that failed is tried again only once it sees more mapped points). No
+    pose guess: the frame may lie anywhere along the recording. Returns the frames registered."""
+    rows = PointRows(tracks)
+    posed = reg.poses()
+    waiting = [f for f in range(len(tracks)) if f not in posed]
+    tried: dict[int, int] = {}  # frame -> mapped points it saw when PnP last failed
+    added = 0
+    while waiting:
+        seen = {f: int(reg.points_w.has(tracks.points_in(f)[0]).sum()) for f in waiting}
+        due = [f for f in waiting if seen[f] >= cfg.pnp.min_inliers and seen[f] > tried.get(f, 0)]
+        registered = set()
+        for f in sorted(due, key=lambda g: -seen[g]):
+            res, _ = _pnp(tracks, reg, f, None, cfg, seed=seed)
+            if res is None or not res.ok:
+                tried[f] = seen[f]
+                continue
+            reg.T_cw[f] = res.T_cw
+            reg.frames.append(f)
+            _triangulate_new(tracks, rows, reg, f, cfg, _starved(res, cfg))
+            log.debug("frame %d registered against the whole map: %s", f, res.reason)
+            registered.add(f)
+        if not registered:
+            break
+        added += len(registered)
+        waiting = [f for f in waiting if f not in registered]
+    if added:
+        log.info("%d frames the pass in frame order could not pose registered against the whole map", added)
+    return added
 
 
 def _matched_tracks(index: TrackIndex, a: set[int], b: set[int], ratio: float) -> list[tuple[int, int]]:
@@ -568,7 +608,7 @@ def _pnp(
     tracks: Tracks,
     reg: Registration,
     f: int,
-    guess: np.ndarray,
+    guess: np.ndarray | None,
     cfg: IncrementalConfig,
     dirs: RegistrationDirections | None = None,
     lines: RegistrationLines | None = None,
