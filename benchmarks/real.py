@@ -506,8 +506,9 @@ def _f(v, fmt: str, width: int) -> str:
 
 
 def print_table(entries: dict[str, dict]) -> None:
+    w = max([24, *map(len, entries)])
     header = (
-        f"{'sequence':24} {'method':8} {'posed':>7} {'ATE m':>8} {'ATE %path':>9} {'wall s':>7} "
+        f"{'sequence':{w}} {'method':8} {'posed':>7} {'ATE m':>8} {'ATE %path':>9} {'wall s':>7} "
         f"{'extract':>7} {'match':>6} {'map':>6}  {'ATE ratio':>9} {'time ratio':>10}  note"
     )
     print(header)
@@ -537,7 +538,7 @@ def print_table(entries: dict[str, dict]) -> None:
             if rec.get("reused_from_commit"):
                 note = (note + " " if note else "") + f"[reused, {rec['reused_from_commit'][:8]}]"
             print(
-                f"{name:24} {LABELS[method]:8} {posed:>7} {_f(rec.get('ate_rmse_m'), '.4f', 8)} "
+                f"{name:{w}} {LABELS[method]:8} {posed:>7} {_f(rec.get('ate_rmse_m'), '.4f', 8)} "
                 f"{_f(rec.get('ate_rmse_pct_path'), '.3f', 9)} {_f(rec.get('wall_s'), '.1f', 7)} "
                 f"{_f(extract, '.1f', 7)} {_f(match, '.1f', 6)} {_f(mapping, '.1f', 6)}  "
                 f"{ratio_ate:>9} {ratio_t:>10}  {note}"
@@ -552,14 +553,16 @@ def print_table(entries: dict[str, dict]) -> None:
 def print_ablation(entries: dict[str, dict]) -> None:
     """ATE (m) of papl-map's full method and of each ablation preset, per sequence, one run."""
     presets = sorted({p for e in entries.values() for p in e.get("papl_ablation", {})})
+    w = max([24, *map(len, entries)])
+    pw = max([18, *map(len, presets)])
     print()
-    print(f"{'sequence':24} {'full':>9} " + " ".join(f"{p:>18}" for p in presets))
+    print(f"{'sequence':{w}} {'full':>9} " + " ".join(f"{p:>{pw}}" for p in presets))
     for name, e in entries.items():
         cells = [_f(e["papl"].get("ate_rmse_m"), ".4f", 9)]
         for p in presets:
             rec = e.get("papl_ablation", {}).get(p, {})
-            cells.append(_f(rec.get("ate_rmse_m") if rec.get("status") == "ok" else None, ".4f", 18))
-        print(f"{name:24} " + " ".join(cells))
+            cells.append(_f(rec.get("ate_rmse_m") if rec.get("status") == "ok" else None, ".4f", pw))
+        print(f"{name:{w}} " + " ".join(cells))
     print(
         "ATE RMSE (m) after Sim(3); presets as `papl-map run --preset` (see `papl-map run --help`), "
         "KEY=VALUE as `--set`."

@@ -208,6 +208,12 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
                 ]
                 for name in ("real.json", "real_step2.json", "real_step3.json", "real_step4.json")
             },
+            "real_shuffled.json": [
+                Rows(
+                    "sequences",
+                    ("papl.frames_posed", "papl.ate_rmse_m", "colmap.ate_rmse_m", "glomap.ate_rmse_m"),
+                )
+            ],
             "scale.json": [
                 Rows(
                     "synthetic",
