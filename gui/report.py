@@ -213,7 +213,8 @@ def _get(d: Any, *keys: str) -> Any:
 
 
 def run_warnings(summary: dict[str, Any] | None) -> list[str]:
-    """What a reader must know before trusting the map: a guessed camera, a doubtful focal length."""
+    """What a reader must know before trusting the map: a guessed camera, a doubtful focal length,
+    parts of the recording mapped apart from it."""
     out = []
     if _get(summary, "camera", "guessed") is True:
         out.append(
@@ -222,6 +223,14 @@ def run_warnings(summary: dict[str, Any] | None) -> list[str]:
         )
     if _get(summary, "focal_check", "plausible") is False:
         out.append(str(_get(summary, "focal_check", "message")))
+    for seg in _get(summary, "segment_maps") or []:
+        first, last = seg["frames"]
+        out.append(
+            f"Frames {first}-{last} could not be joined to this map (a stretch with too little to track "
+            f"between them): they were mapped on their own, in their own frame and scale, in "
+            f"{seg['folder']}/ ({seg['frames_posed']} frames posed, {seg['points']} points, "
+            f"{seg['lines']} lines)."
+        )
     return out
 
 

@@ -76,6 +76,7 @@ _REGISTRATION_FIELDS = {
     "T_cw_frames",
     "lost",
     "segments_left_out",
+    "left_out",
     "revisits",
     "init_frames",
 }
@@ -298,7 +299,20 @@ def _dict_arrays(d: dict[int, Any], shape: tuple[int, ...]) -> tuple[np.ndarray,
 
 
 def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
-    """Registration and the tracks' point ids as registration left them (revisits rename tracks)."""
+    """Registration and the tracks' point ids as registration left them (revisits rename tracks);
+    each segment left out of the map in a file of its own."""
+    np.savez(
+        folder / "registration.npz",
+        **_registration_arrays(reg),
+        point_track=tracks.point_track,
+        n_left_out=np.int64(len(reg.left_out)),
+    )
+    for k, seg in enumerate(reg.left_out):
+        np.savez(folder / f"registration_left_out_{k}.npz", **_registration_arrays(seg))
+
+
+def _registration_arrays(reg: Registration) -> dict[str, np.ndarray]:
+    """One Registration's fields as arrays (not its left-out segments)."""
     kf_ids, kf_T = _dict_arrays(reg.T_cw, (4, 4))
     fr_ids, fr_T = _dict_arrays(reg.T_cw_frames, (4, 4))
     pt_ids, pt_xyz = _dict_arrays(reg.points_w, (3,))
@@ -306,8 +320,7 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
     rv = reg.revisits
     pairs = [np.asarray(r.pairs, np.int64).reshape(-1, 2) for r in rv]
     fused = [np.asarray(r.fused, np.int64).reshape(-1, 2) for r in rv]
-    np.savez(
-        folder / "registration.npz",
+    return dict(
         frames=np.asarray(reg.frames, np.int64),
         kf_ids=kf_ids,
         kf_T_cw=kf_T,
@@ -334,7 +347,6 @@ def write_registration(folder: Path, reg: Registration, tracks: Tracks) -> None:
         revisit_pairs=np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64),
         revisit_n_fused=np.array([len(p) for p in fused], np.int64),
         revisit_fused=np.concatenate(fused) if fused else np.zeros((0, 2), np.int64),
-        point_track=tracks.point_track,
         segments_left_out=np.asarray(reg.segments_left_out, np.int64).reshape(-1, 2),
     )
 
@@ -351,6 +363,15 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
     with np.load(folder / "registration.npz", allow_pickle=False) as z:
         a = {k: z[k] for k in z.files}
     _check_point_track(a["point_track"], tracks)
+    reg = _registration_from(a)
+    for k in range(int(a.get("n_left_out", 0))):
+        with np.load(folder / f"registration_left_out_{k}.npz", allow_pickle=False) as z:
+            reg.left_out.append(_registration_from({key: z[key] for key in z.files}))
+    return reg, a["point_track"]
+
+
+def _registration_from(a: dict[str, np.ndarray]) -> Registration:
+    """One Registration from `_registration_arrays`' arrays (older checkpoints lack later fields)."""
 
     def as_dict(ids: np.ndarray, values: np.ndarray) -> dict[int, np.ndarray]:
         if len(ids) != len(values):
@@ -397,7 +418,7 @@ def read_registration(folder: Path, meta: dict[str, Any], tracks: Tracks) -> tup
     )
     if set(reg.frames) - set(reg.T_cw) or len(reg.frames) != len(reg.T_cw):
         raise ValueError("keyframes and keyframe poses disagree")
-    return reg, a["point_track"]
+    return reg
 
 
 # ---- points BA and full BA --------------------------------------------------------------------

@@ -60,6 +60,7 @@ from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.pipelines.logfile import close_log, file_log
 from papl_mapper.pipelines.run_outputs import (
     Extras,
+    SegmentMap,
     check_before_work,
     unmapped_trajectory,
     write_extras,
@@ -240,7 +241,7 @@ def _map_recording(
         else:
             tracks, frontend_stats = loaded
         try:
-            m, stats = map_tracks(tracks, cfg, timer, progress, store)
+            reg = register(tracks, cfg, timer, progress, store)
         except UnmappableError as exc:
             summary = RunSummary(
                 recording=RecordingInfo(str(recording), sha, int(len(tracks))),
@@ -251,6 +252,7 @@ def _map_recording(
             )
             write_unmapped(out, unmapped_trajectory(tracks.timestamp, exc.T_cw_frames), cfg, summary)
             raise
+        m, stats = build_map(tracks, reg, cfg, timer, progress, store)
         focal_check = None
         if cfg.focal.enabled:
             with timer.stage("focal_check"):
@@ -279,6 +281,10 @@ def _map_recording(
             traj = frame_trajectory(tracks, m, cfg)
         with timer.stage("scale"):
             m, traj = scale_from_config(m, traj, cfg.scale, rec.frames)
+        segments = segment_maps(tracks, reg, cfg, timer, progress)
+        for seg in segments:
+            seg.map.metadata.update({k: m.metadata[k] for k in ("software", "source", "source_sha256")})
+            seg.map.metadata.update(units="arbitrary", segment_frames=[seg.first, seg.last])
         summary = RunSummary(
             recording=RecordingInfo(
                 str(recording),
@@ -300,10 +306,11 @@ def _map_recording(
             resumed=store.resumed.as_dict() if store.resumed else None,
             checkpoints_written=store.written,
             per_frame=per_frame_counts(tracks),
+            segment_maps=[seg.summary() for seg in segments],
         )
-        _warn_partial(summary.frames_lost, len(tracks), cam_src.guessed, stats.segments_left_out)
+        _warn_partial(summary.frames_lost, len(tracks), cam_src.guessed, stats.segments_left_out, segments)
         timer.current = "writing outputs"
-        write_outputs(out, m, traj, cfg, summary)
+        write_outputs(out, m, traj, cfg, summary, segments)
         store.prune()
     except KeyboardInterrupt as exc:
         latest = store.latest if store is not None else None
@@ -327,20 +334,40 @@ def map_tracks(
     timer = timer or _Timer()
     progress = progress or _silent
     store = store or StageStore.off()
+    reg = register(tracks, cfg, timer, progress, store)
+    return build_map(tracks, reg, cfg, timer, progress, store)
 
+
+def register(
+    tracks: Tracks, cfg: RunConfig, timer: _Timer, progress: ProgressFactory, store: StageStore
+) -> Registration:
+    """Registration (`register_keyframes` with the windowed BA), or its checkpoint when resumed."""
     store.chain(cfg)
     loaded = store.load("registration", functools.partial(ckpt.read_registration, tracks=tracks))
-    if loaded is None:
-        with timer.stage("registration"), progress("keyframes") as cb:
-            local = dataclasses.replace(cfg.ba, relative_error_tol=cfg.local_ba_relative_error_tol)
-            refine = WindowedRefiner(tracks, local, cfg.local_ba_window, cfg.max_point_error_px)
-            reg = register_keyframes(
-                tracks, cfg.mapping, cb, refine if cfg.mapping.refine_every > 0 else None, cfg.seed
-            )
-        _save(store, timer, "registration", ckpt.write_registration, reg=reg, tracks=tracks)
-    else:
+    if loaded is not None:
         reg, point_track = loaded
         tracks.point_track[:] = point_track  # in place, like the loop closures that renamed them
+        return reg
+    with timer.stage("registration"), progress("keyframes") as cb:
+        local = dataclasses.replace(cfg.ba, relative_error_tol=cfg.local_ba_relative_error_tol)
+        refine = WindowedRefiner(tracks, local, cfg.local_ba_window, cfg.max_point_error_px)
+        reg = register_keyframes(
+            tracks, cfg.mapping, cb, refine if cfg.mapping.refine_every > 0 else None, cfg.seed
+        )
+    _save(store, timer, "registration", ckpt.write_registration, reg=reg, tracks=tracks)
+    return reg
+
+
+def build_map(
+    tracks: Tracks,
+    reg: Registration,
+    cfg: RunConfig,
+    timer: _Timer,
+    progress: ProgressFactory,
+    store: StageStore,
+) -> tuple[Map, MappingStats]:
+    """Everything after registration: the registered keyframes -> optimised, upright Map and
+    statistics; the points BA and full BA checkpointed in `store` and resumed from it."""
     read_map = functools.partial(ckpt.read_map, tracks=tracks)
     full = store.load("ba_full", read_map)
     points = store.load("ba_points", read_map) if full is None else None
@@ -401,6 +428,36 @@ def map_tracks(
         log.info("%d lines reaching outside the points' extent dropped after BA", dropped)
     upright_by_axes(m)
     return m, stats
+
+
+def segment_maps(
+    tracks: Tracks, reg: Registration, cfg: RunConfig, timer: _Timer, progress: ProgressFactory
+) -> list[SegmentMap]:
+    """Each tracking segment left out of the map (`reg.left_out`), mapped on its own by the stages
+    after registration, with the poses of its frames: what was posed is not lost. Not checkpointed (a
+    resumed run maps them again from the registration's); the track ids the stages rename are put
+    back after each, so the map and its trajectory keep theirs."""
+    out: list[SegmentMap] = []
+    for seg in reg.left_out:
+        a, b = min(seg.poses()), max(seg.poses())
+        first, last = int(tracks.frame_index[a]), int(tracks.frame_index[b])
+        log.info(
+            "mapping the tracking segment of frames %d-%d on its own (its own frame and scale)", first, last
+        )
+        point_track, line_track = tracks.point_track.copy(), tracks.line_track.copy()
+        try:
+            with timer.stage("segments"):
+                m, _ = build_map(tracks, seg, cfg, _Timer(), progress, StageStore.off())
+                traj = frame_trajectory(tracks, m, cfg)
+        except PaplError as exc:
+            log.warning("tracking segment of frames %d-%d: no map of its own (%s)", first, last, exc)
+            continue
+        finally:
+            tracks.point_track[:] = point_track
+            tracks.line_track[:] = line_track
+        inside = (traj.timestamps >= tracks.timestamp[a]) & (traj.timestamps <= tracks.timestamp[b])
+        out.append(SegmentMap(first, last, m, traj.subset(np.flatnonzero(inside))))
+    return out
 
 
 def _cull_after_ba(m: Map, cfg: RunConfig, stats: MappingStats) -> None:
@@ -492,10 +549,17 @@ __all__ = [
 PARTIAL_WARN_FRACTION = 0.2
 
 
-def _warn_partial(lost: int, frames: int, guessed_camera: bool, left_out: list[list[int]] = ()) -> None:
+def _warn_partial(
+    lost: int,
+    frames: int,
+    guessed_camera: bool,
+    left_out: list[list[int]] = (),
+    segments: list[SegmentMap] = (),
+) -> None:
     """A warning, not silence, when much of the recording has no pose: the map covers only part of it,
     which a wrong camera file (intrinsics, distortion) causes as often as the recording itself. Tracking
-    segments mapped on their own but not joined (`left_out`, recording frame ranges) are named."""
+    segments mapped on their own but not joined (`left_out`, recording frame ranges) are named, with
+    the folders their own maps went to (`segments`)."""
     if frames == 0 or lost <= PARTIAL_WARN_FRACTION * frames:
         return
     cause = (
@@ -510,6 +574,9 @@ def _warn_partial(lost: int, frames: int, guessed_camera: bool, left_out: list[l
             f"; frames {ranges} were mapped as separate tracking segments that share too little with "
             "the map to join it (a blind stretch between them)"
         )
+        if segments:
+            folders = ", ".join(seg.folder for seg in segments)
+            apart += f", each written with its own map, frame and scale to {folders}"
     log.warning(
         "%d of %d frames (%.0f%%) have no pose%s: the map covers only part of the recording; check %s, "
         "or the frames without a pose in summary.json's per_frame (too little texture or motion blur)",

@@ -83,19 +83,65 @@ def _export_name(fmt: str) -> str:
     return f"map.{fmt.strip().lstrip('.')}"
 
 
-def write_outputs(out: Path, m: Map, traj: Trajectory, cfg: RunConfig, summary: RunSummary) -> None:
+#: What each tracking segment left out of the map gets in its folder (`SegmentMap.folder`).
+SEGMENT_FILES = ("trajectory.tum", "keyframes.tum", "map.papl")
+
+
+@dataclass
+class SegmentMap:
+    """A tracking segment the map could not be joined with, mapped on its own: its own frame and
+    scale, frames `first`-`last` of the recording."""
+
+    first: int
+    last: int
+    map: Map
+    trajectory: Trajectory
+
+    @property
+    def folder(self) -> str:
+        """Its folder in the output folder, e.g. segments/000000-000103."""
+        return f"segments/{self.first:06d}-{self.last:06d}"
+
+    def summary(self) -> dict[str, Any]:
+        """Its row in summary.json's `segment_maps`."""
+        counts = self.map.summary()
+        return {
+            "frames": [self.first, self.last],
+            "folder": self.folder,
+            "frames_posed": len(self.trajectory),
+            **{k: counts[k] for k in ("keyframes", "points", "lines", "anchored_fraction")},
+        }
+
+
+def write_outputs(
+    out: Path,
+    m: Map,
+    traj: Trajectory,
+    cfg: RunConfig,
+    summary: RunSummary,
+    segments: list[SegmentMap] = (),
+) -> None:
     """Every output is written under a temporary name first, then all are renamed (the map last), so an
     interruption while writing leaves the previous run's outputs, not a mix of two runs (only a Ctrl-C
-    landing between two of the five renames, a window of microseconds, could still mix them)."""
+    landing between two of the renames, a window of microseconds, could still mix them). Each segment
+    left out of the map gets its map and trajectories in its own folder."""
+    names = [f"{seg.folder}/{name}" for seg in segments for name in SEGMENT_FILES] + list(OUTPUT_FILES)
+    for seg in segments:
+        (out / seg.folder).mkdir(parents=True, exist_ok=True)
     with contextlib.ExitStack() as stack:
         # contexts close in reverse: the map, entered first, is renamed last
-        tmp = {name: stack.enter_context(atomic_path(out / name)) for name in reversed(OUTPUT_FILES)}
+        tmp = {name: stack.enter_context(atomic_path(out / name)) for name in reversed(names)}
         m.save(tmp["map.papl"])
         _write_text(tmp["summary.json"], json.dumps(summary.to_dict(), indent=1, default=json_default))
         _write_text(tmp["config.toml"], dump_toml(config_to_dict(cfg)))
         write_tum(tmp["keyframes.tum"], Trajectory(m.keyframes.timestamp, m.keyframes.T_wc, "keyframes"))
         write_tum(tmp["trajectory.tum"], traj)
-    begin_run(out, [out / name for name in OUTPUT_FILES])
+        for seg in segments:
+            seg.map.save(tmp[f"{seg.folder}/map.papl"])
+            kf = seg.map.keyframes
+            write_tum(tmp[f"{seg.folder}/keyframes.tum"], Trajectory(kf.timestamp, kf.T_wc, "keyframes"))
+            write_tum(tmp[f"{seg.folder}/trajectory.tum"], seg.trajectory)
+    begin_run(out, [out / name for name in names])
 
 
 def write_unmapped(out: Path, traj: Trajectory, cfg: RunConfig, summary: RunSummary) -> None:

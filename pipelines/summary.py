@@ -102,6 +102,8 @@ class RunSummary:
     checkpoints_written: dict[str, dict[str, float]] | None = None
     per_frame: dict[str, list[int]] | None = None
     """Frame index and point and line observations per frame."""
+    segment_maps: list[dict[str, Any]] | None = None
+    """Tracking segments left out of the map and mapped on their own: frames, folder, counts."""
 
     def to_dict(self) -> dict[str, Any]:
         """The flat table written as summary.json (stages that did not run left out)."""

@@ -345,3 +345,13 @@ def test_report_warns_of_guessed_camera_and_wrong_focal_length():
     w = run_warnings({"camera": {"guessed": True}, "focal_check": focal})
     assert len(w) == 2 and "guessed" in w[0] and w[1] == "focal length looks wrong"
     assert run_warnings(None) == []
+
+
+def test_report_names_the_segments_mapped_apart_from_the_map():
+    from papl_mapper.gui.report import run_warnings
+
+    seg = {"frames": [0, 103], "folder": "segments/000000-000103", "frames_posed": 103, "points": 1434}
+    (w,) = run_warnings({"segment_maps": [{**seg, "lines": 25}]})
+    assert w.startswith("Frames 0-103 could not be joined to this map")
+    assert "segments/000000-000103/ (103 frames posed, 1434 points, 25 lines)" in w
+    assert run_warnings({"segment_maps": []}) == []

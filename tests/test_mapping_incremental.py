@@ -206,6 +206,7 @@ def test_segments_join_each_other_and_the_group_posing_most_frames_is_the_map():
     assert sorted(merged.T_cw) == list(range(60, 120))
     assert not set(range(50)) & set(merged.T_cw)
     assert merged.segments_left_out == [(0, 49)]  # named in summary.json and the partial-map warning
+    assert merged.left_out == [first]  # mapped on its own
     # frame 100 sees the same point in both frames, up to the scale s
     x3 = third.T_cw[100][:3, :3] @ third.points_w[25] + third.T_cw[100][:3, 3]
     x2 = merged.T_cw[100][:3, :3] @ merged.points_w[25] + merged.T_cw[100][:3, 3]

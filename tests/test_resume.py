@@ -362,6 +362,16 @@ def _registration(rng: np.random.Generator) -> Registration:
         ],
         init_frames=(0, 3),
         segments_left_out=[(5, 9)],
+        left_out=[
+            Registration(
+                frames=[5, 9],
+                T_cw={5: pose(), 9: pose()},
+                points_w={3: rng.normal(size=3)},
+                point_angle={3: 2.5},
+                T_cw_frames={6: pose()},
+                init_frames=(5, 9),
+            )
+        ],
     )
     return reg
 
@@ -382,8 +392,15 @@ def test_registration_round_trip_keeps_order_revisits_and_renamed_tracks(tmp_pat
         assert all(np.array_equal(a[k], b[k]) for k in a), name
     # every field of Registration is compared here: a new one must be added to this test
     compared = {"frames", "lost", "init_frames", "T_cw", "points_w", "T_cw_frames", "point_angle", "revisits"}
-    compared.add("segments_left_out")
+    compared |= {"segments_left_out", "left_out"}
     assert {f.name for f in dataclasses.fields(Registration)} == compared
+    # the segments left out of the map, each with its own registration
+    assert len(back.left_out) == 1
+    seg, seg_back = reg.left_out[0], back.left_out[0]
+    assert seg_back.frames == seg.frames and seg_back.init_frames == seg.init_frames
+    for name in ("T_cw", "points_w", "T_cw_frames", "point_angle"):
+        a, b = getattr(seg, name), getattr(seg_back, name)
+        assert list(a) == list(b) and all(np.array_equal(a[k], b[k]) for k in a), name
     for a, b in zip(reg.revisits, back.revisits, strict=True):
         assert (a.frame, a.old_frame, a.scale) == (b.frame, b.old_frame, b.scale)
         assert np.array_equal(a.T_cw, b.T_cw) and np.array_equal(a.pairs.reshape(-1, 2), b.pairs)

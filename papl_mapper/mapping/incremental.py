@@ -127,6 +127,9 @@ class Registration:
     segments_left_out: list[tuple[int, int]] = field(default_factory=list)
     """First and last frame (rows) of each tracking segment that could not be joined to the map (its
     frames are among `lost`)."""
+    left_out: list[Registration] = field(default_factory=list)
+    """Those segments' own registrations (each in its own frame and scale), in the order of
+    `segments_left_out`, for maps of their own."""
     init_frames: tuple[int, int] = (-1, -1)
 
     def __post_init__(self) -> None:
@@ -481,8 +484,9 @@ def _merge_segments(
             max(seg.frames),
             len(seg.frames),
         )
-    posed = [sorted(seg.poses()) for seg in groups[1:]]
-    groups[0].segments_left_out = sorted((f[0], f[-1]) for f in posed)
+    left_out = sorted(groups[1:], key=lambda seg: min(seg.poses()))
+    groups[0].segments_left_out = [(min(seg.poses()), max(seg.poses())) for seg in left_out]
+    groups[0].left_out = left_out
     return groups[0]
 
 

@@ -165,7 +165,7 @@ def triangulate_lines(
     order = np.argsort(track, kind="stable")
     track, T_wc, xy, vp_dir_w = track[order], T_wc[order], xy[order], vp_dir_w[order]
     starts = np.flatnonzero(np.r_[True, track[1:] != track[:-1]]) if len(track) else np.zeros(0, int)
-    ends = np.r_[starts[1:], len(track)]
+    ends = np.r_[starts[1:], len(track)] if len(track) else np.zeros(0, int)
     planes = observation_planes(T_wc, K, xy) if len(track) else np.zeros((0, 4))
     out_t, out_e, out_vp, out_rms = [], [], [], []
     reasons: dict[str, int] = {}
