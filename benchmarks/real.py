@@ -30,6 +30,7 @@ the peer's.
     .venv/bin/python benchmarks/real.py --skip-colmap            # papl-map only, peers from the JSON
     .venv/bin/python benchmarks/real.py --ablation points-only,orthonormal-lines,no-axis-management
     .venv/bin/python benchmarks/real.py --step 3                 # every 3rd image: real_step3.json
+    .venv/bin/python benchmarks/real.py --step 3 --offset 1      # from the 2nd: real_step3_offset1.json
     .venv/bin/python benchmarks/real.py --repeat 3               # papl-map's wall: median of 3 runs
     .venv/bin/python benchmarks/real.py --shuffle 0,1,2          # photo sets out of order: real_shuffled.json
     .venv/bin/python benchmarks/real.py --ablation mapping.retry_lost=false   # any config key as a row
@@ -106,10 +107,12 @@ class Sequence:
     height: int
     step: int = 1  # every step-th image of the folder (papl-map --step; the peers get the same images)
     shuffle: int | None = None  # the seed of the image order (`shuffled`); None: name order
+    offset: int = 0  # the first image of a thinned sequence (`every_nth`)
 
     @property
     def label(self) -> str:
-        return self.name if self.shuffle is None else f"{self.name}_shuffle{self.shuffle}"
+        label = self.name if self.shuffle is None else f"{self.name}_shuffle{self.shuffle}"
+        return label + (f"_offset{self.offset}" if self.offset else "")
 
     @property
     def median_interval_s(self) -> float:
@@ -186,12 +189,24 @@ def discover(data: Path) -> list[Sequence]:
     return seqs
 
 
-def every_nth(seq: Sequence, step: int) -> Sequence:
-    """The sequence thinned to every step-th image, as `papl-map run --step` reads it (wider baselines,
-    as dropped frames or a faster walk give)."""
-    if step == 1:
+def every_nth(seq: Sequence, step: int, offset: int = 0, root: Path | None = None) -> Sequence:
+    """The sequence thinned to every step-th image from the first, as `papl-map run --step` reads it
+    (wider baselines, as dropped frames or a faster walk give); from image `offset` > 0, a folder of
+    symlinks to those images with their timestamps.txt under `root`, mapped as it is."""
+    if step == 1 and offset == 0:
         return seq
-    return dataclasses.replace(seq, names=seq.names[::step], timestamps=seq.timestamps[::step], step=step)
+    names, stamps = seq.names[offset::step], seq.timestamps[offset::step]
+    if offset == 0:
+        return dataclasses.replace(seq, names=names, timestamps=stamps, step=step)
+    images = root / f"{seq.name}_step{step}_offset{offset}" / "images"
+    if images.exists():
+        shutil.rmtree(images)
+    images.mkdir(parents=True)
+    for name in names:
+        (images / name).symlink_to((seq.images / name).resolve())
+    lines = [f"{t!r} {n}\n" for t, n in zip(stamps.tolist(), names, strict=True)]
+    (images / "timestamps.txt").write_text("".join(lines))
+    return dataclasses.replace(seq, images=images, names=names, timestamps=stamps, step=step, offset=offset)
 
 
 def shuffled(seq: Sequence, seed: int, root: Path) -> Sequence:
@@ -282,7 +297,7 @@ def run_papl(seq: Sequence, out: Path, timeout_s: float, preset: str = "full") -
     cmd = [str(PAPL), "run", str(seq.images), "--camera", str(seq.camera_file), "--out", str(out)]
     if preset != "full":
         cmd += ["--set", preset] if "=" in preset else ["--preset", preset]
-    cmd += ["--step", str(seq.step)] if seq.step > 1 else []
+    cmd += ["--step", str(seq.step)] if seq.step > 1 and not seq.offset else []
     rec: dict = {"command": " ".join(cmd), "loadavg_1m_at_start": _loadavg(), "frames_total": len(seq.names)}
     t0 = time.perf_counter()
     try:
@@ -622,6 +637,13 @@ def main() -> int:
         help="map every STEP-th image (all methods); results go to real_step<STEP>.json unless --out",
     )
     ap.add_argument(
+        "--offset",
+        type=int,
+        default=0,
+        help="with --step: start at this image (a folder of links to those images is mapped); results go "
+        "to real_step<STEP>_offset<OFFSET>.json unless --out",
+    )
+    ap.add_argument(
         "--ablation",
         default="",
         help="papl-map presets (or config overrides KEY=VALUE) also run on every sequence, "
@@ -640,12 +662,16 @@ def main() -> int:
     if args.step < 1:
         print(f"--step {args.step}: must be 1 or more")
         return 2
+    if args.offset and (args.offset >= args.step or args.offset < 0):
+        print(f"--offset {args.offset}: must be between 0 and --step - 1")
+        return 2
     if args.step > 1 and args.out == OUT:
-        args.out = OUT.with_name(f"real_step{args.step}.json")
+        suffix = f"_offset{args.offset}" if args.offset else ""
+        args.out = OUT.with_name(f"real_step{args.step}{suffix}.json")
     seeds = [int(v) for v in args.shuffle.split(",") if v.strip()]
     if seeds and args.out == OUT:
         args.out = OUT.with_name("real_shuffled.json")
-    seqs = [every_nth(s, args.step) for s in discover(args.data)]
+    seqs = [every_nth(s, args.step, args.offset, args.out_dir) for s in discover(args.data)]
     if args.only:
         wanted = [s.strip() for s in args.only.split(",") if s.strip()]
         unknown = sorted(set(wanted) - {s.name for s in seqs})
@@ -680,6 +706,7 @@ def main() -> int:
             "camera_file": seq.camera_file.name,
             "frames_total": len(seq.names),
             "step": seq.step,
+            **({"offset": seq.offset} if seq.offset else {}),
             **({"shuffle_seed": seq.shuffle, "image_order": seq.names} if seq.shuffle is not None else {}),
             "image_size_px": [seq.width, seq.height],
             "median_frame_interval_s": seq.median_interval_s,

@@ -206,7 +206,15 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
                         ),
                     )
                 ]
-                for name in ("real.json", "real_step2.json", "real_step3.json", "real_step4.json")
+                for name in (
+                    "real.json",
+                    "real_step2.json",
+                    "real_step2_offset1.json",
+                    "real_step3.json",
+                    "real_step3_offset1.json",
+                    "real_step3_offset2.json",
+                    "real_step4.json",
+                )
             },
             "real_shuffled.json": [
                 Rows(
