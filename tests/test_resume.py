@@ -211,7 +211,7 @@ def test_a_real_ctrl_c_leaves_the_outputs_and_a_checkpoint_to_resume(ready, copi
     [
         ("lines.min_views=4", "ba_points"),  # a line setting keeps registration and points BA
         ("cull.enabled=true", "registration"),  # culling runs after registration
-        ("rotations.check_deg=0.2", "registration"),  # the rotation check follows the points BA
+        ("rotations.check_deg=0.4", "registration"),  # the rotation check follows the points BA
         ("mapping.min_parallax_deg=2.5", "frontend"),  # a mapping setting recomputes registration
     ],
 )

@@ -50,9 +50,10 @@ class RotationCheckConfig:
     are the BA's inliers, so a poor fit means a degenerate pair (no baseline), not outliers."""
     sigma_deg: float = 0.1
     """Standard deviation of one pairwise rotation (degrees); a Huber loss beyond 1.345 sigma."""
-    check_deg: float = 0.5
+    check_deg: float = 0.2
     """The BA's rotations start a second BA when they miss the pairwise rotations by more than this at
-    the median pair..."""
+    the median pair (twice `sigma_deg`: beyond a pair's own noise; the second BA is kept only where it
+    reaches the lower cost)..."""
     check_ratio: float = 3.0
     """...and by this many times more than the averaged rotations do (where the pairwise rotations are
     noisy, as from a rolling-shutter camera, both miss them alike: no second start)."""
