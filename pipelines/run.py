@@ -188,7 +188,7 @@ def run(
         raise OutputError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from exc
     handler = file_log(running_log, "a" if resume else "w")
     try:
-        m, summary = _map_recording(recording, out, cfg, resume, progress)
+        m, summary, segments = _map_recording(recording, out, cfg, resume, progress)
     except RunInterrupted as exc:  # the running log keeps why the run stopped
         _log_only(handler, exc.message())
         raise
@@ -204,7 +204,7 @@ def run(
     add_outputs(out, [out / "log.txt"])
     handler = file_log(out / "log.txt", "a")  # exports, previews and the report log there too
     try:
-        extras = write_extras(out, m, cfg, progress)
+        extras = write_extras(out, m, cfg, progress, segments)
     except KeyboardInterrupt as exc:
         raise ExtrasInterrupted(out) from exc
     finally:
@@ -219,7 +219,7 @@ def _log_only(handler: logging.Handler, message: str) -> None:
 
 def _map_recording(
     recording: Path, out: Path, cfg: RunConfig, resume: bool, progress: ProgressFactory
-) -> tuple[Map, RunSummary]:
+) -> tuple[Map, RunSummary, list[SegmentMap]]:
     """The stages, then the outputs (see `run`); RunInterrupted on Ctrl-C."""
     timer = _Timer()
     timer.current = "reading the input"
@@ -315,7 +315,7 @@ def _map_recording(
     except KeyboardInterrupt as exc:
         latest = store.latest if store is not None else None
         raise RunInterrupted(timer.current or "between stages", latest, out / ".checkpoint") from exc
-    return m, summary
+    return m, summary, segments
 
 
 def map_tracks(

@@ -156,17 +156,19 @@ def write_unmapped(out: Path, traj: Trajectory, cfg: RunConfig, summary: RunSumm
     begin_run(out, [out / name for name in names])
 
 
-def write_extras(out: Path, m: Map, cfg: RunConfig, progress: Any) -> Extras:
+def write_extras(out: Path, m: Map, cfg: RunConfig, progress: Any, segments: list[SegmentMap] = ()) -> Extras:
     """The exports, eval.json, previews and report.html of `cfg.output`, each added to the manifest as
-    it is written; `progress(title)` is the previews' progress context (see `pipelines.run`)."""
+    it is written; `progress(title)` is the previews' progress context (see `pipelines.run`). The
+    segments mapped on their own get the exports too, in their folders."""
     done = Extras()
     o = cfg.output
     for fmt in o.export:
         from papl_mapper.exporters import export
 
-        paths = export(m, out / _export_name(fmt))
-        add_outputs(out, paths)
-        done.exports += paths
+        for folder, mp in [(out, m), *((out / seg.folder, seg.map) for seg in segments)]:
+            paths = export(mp, folder / _export_name(fmt))
+            add_outputs(out, paths)
+            done.exports += paths
     if o.gt is not None:
         from papl_mapper.eval import evaluate
 

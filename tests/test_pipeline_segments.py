@@ -9,7 +9,7 @@ import numpy as np
 from papl_mapper.pipelines.checkpoint import StageStore
 from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.pipelines.run import _silent, _Timer, build_map, frame_trajectory, register, segment_maps
-from papl_mapper.pipelines.run_outputs import write_outputs
+from papl_mapper.pipelines.run_outputs import write_extras, write_outputs
 from papl_mapper.pipelines.summary import RecordingInfo, RunSummary
 from tests.test_mapping_incremental import _umeyama_sim3, make_tracks
 
@@ -59,3 +59,8 @@ def test_a_segment_left_out_gets_its_own_map_trajectory_and_folder(tmp_path):
     assert {f"{seg.folder}/{n}" for n in ("map.papl", "trajectory.tum", "keyframes.tum")} <= set(listed)
     written = json.loads((tmp_path / "summary.json").read_text())["segment_maps"]
     assert written == [{**seg.summary(), "frames_posed": CUT}]
+    # an export asked for is written for the segment too, in its folder, and listed
+    cfg.output.export = ["ply"]
+    extras = write_extras(tmp_path, m, cfg, _silent, segments)
+    assert {tmp_path / "map.ply", folder / "map.ply"} <= set(extras.exports)
+    assert f"{seg.folder}/map.ply" in json.loads((tmp_path / "manifest.json").read_text())["files"]

@@ -22,7 +22,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description=__doc__,
         epilog="Outputs in DIR: map.papl, trajectory.tum (every frame), keyframes.tum, config.toml, "
         "summary.json, log.txt; with --export/--render/--report also those; a tracking segment that "
-        "could not be joined to the map gets its own map and trajectories in DIR/segments/FIRST-LAST/; "
+        "could not be joined to the map gets its own map, trajectories and exports in "
+        "DIR/segments/FIRST-LAST/; "
         "manifest.json lists them. "
         "A rerun into DIR removes the files the previous run's manifest lists and the new run does not "
         "write (nothing else). Options, paths and export targets are checked before the first frame. "
