@@ -449,8 +449,9 @@ def segment_maps(
             with timer.stage("segments"):
                 m, _ = build_map(tracks, seg, cfg, _Timer(), progress, StageStore.off())
                 traj = frame_trajectory(tracks, m, cfg)
-        except PaplError as exc:
+        except Exception as exc:  # noqa: BLE001 - a segment's own map is extra: it must not cost the map
             log.warning("tracking segment of frames %d-%d: no map of its own (%s)", first, last, exc)
+            log.debug("the segment's stages failed:", exc_info=True)
             continue
         finally:
             tracks.point_track[:] = point_track

@@ -64,3 +64,26 @@ def test_a_segment_left_out_gets_its_own_map_trajectory_and_folder(tmp_path):
     extras = write_extras(tmp_path, m, cfg, _silent, segments)
     assert {tmp_path / "map.ply", folder / "map.ply"} <= set(extras.exports)
     assert f"{seg.folder}/map.ply" in json.loads((tmp_path / "manifest.json").read_text())["files"]
+
+
+def test_a_segment_whose_stages_fail_is_named_and_the_map_kept(monkeypatch, caplog):
+    """A segment's own map is extra: when its stages fail, one warning names it, and the track ids are
+    put back for the map's trajectory."""
+    import papl_mapper.pipelines.run as run_mod
+
+    tracks, _ = _cut_recording()
+    cfg = RunConfig()
+    reg = register(tracks, cfg, _Timer(), _silent, StageStore.off())
+    ids = tracks.point_track.copy()
+
+    def broken(*args, **kwargs):
+        tracks.point_track[:5] = -1  # as a completion would rename tracks before failing
+        raise ValueError("singular matrix")
+
+    monkeypatch.setattr(run_mod, "build_map", broken)
+    with caplog.at_level("WARNING", logger="papl_mapper.pipelines.run"):
+        assert segment_maps(tracks, reg, cfg, _Timer(), _silent) == []
+    assert np.array_equal(tracks.point_track, ids)
+    (record,) = [r for r in caplog.records if r.name == "papl_mapper.pipelines.run"]
+    expected = f"tracking segment of frames 0-{CUT - 1}: no map of its own (singular matrix)"
+    assert record.getMessage() == expected
