@@ -75,7 +75,6 @@ _REGISTRATION_FIELDS = {
     "point_angle",
     "T_cw_frames",
     "lost",
-    "segments_left_out",
     "left_out",
     "revisits",
     "init_frames",
@@ -347,7 +346,6 @@ def _registration_arrays(reg: Registration) -> dict[str, np.ndarray]:
         revisit_pairs=np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64),
         revisit_n_fused=np.array([len(p) for p in fused], np.int64),
         revisit_fused=np.concatenate(fused) if fused else np.zeros((0, 2), np.int64),
-        segments_left_out=np.asarray(reg.segments_left_out, np.int64).reshape(-1, 2),
     )
 
 
@@ -414,7 +412,6 @@ def _registration_from(a: dict[str, np.ndarray]) -> Registration:
         lost=a["lost"].tolist(),
         revisits=revisits,
         init_frames=(int(a["init_frames"][0]), int(a["init_frames"][1])),
-        segments_left_out=[(int(f), int(g)) for f, g in a.get("segments_left_out", np.zeros((0, 2)))],
     )
     if set(reg.frames) - set(reg.T_cw) or len(reg.frames) != len(reg.T_cw):
         raise ValueError("keyframes and keyframe poses disagree")

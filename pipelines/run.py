@@ -438,8 +438,7 @@ def segment_maps(
     resumed run maps them again from the registration's); the track ids the stages rename are put
     back after each, so the map and its trajectory keep theirs."""
     out: list[SegmentMap] = []
-    for seg in reg.left_out:
-        a, b = min(seg.poses()), max(seg.poses())
+    for seg, (a, b) in zip(reg.left_out, reg.segments_left_out, strict=True):
         first, last = int(tracks.frame_index[a]), int(tracks.frame_index[b])
         log.info(
             "mapping the tracking segment of frames %d-%d on its own (its own frame and scale)", first, last

@@ -124,12 +124,9 @@ class Registration:
     """Frames that could not be registered (tracking loss)."""
     revisits: list[Revisit] = field(default_factory=list)
     """Loops closed during registration."""
-    segments_left_out: list[tuple[int, int]] = field(default_factory=list)
-    """First and last frame (rows) of each tracking segment that could not be joined to the map (its
-    frames are among `lost`)."""
     left_out: list[Registration] = field(default_factory=list)
-    """Those segments' own registrations (each in its own frame and scale), in the order of
-    `segments_left_out`, for maps of their own."""
+    """The tracking segments that could not be joined to the map (their frames are among `lost`), each
+    with its own registration (its own frame and scale), in frame order, for maps of their own."""
     init_frames: tuple[int, int] = (-1, -1)
 
     def __post_init__(self) -> None:
@@ -139,6 +136,11 @@ class Registration:
     def poses(self) -> dict[int, np.ndarray]:
         """T_cw of every frame with a pose: the keyframes' and those of the frames between them."""
         return {**self.T_cw_frames, **self.T_cw}
+
+    @property
+    def segments_left_out(self) -> list[tuple[int, int]]:
+        """First and last frame (rows) posed by each segment in `left_out`."""
+        return [(min(seg.poses()), max(seg.poses())) for seg in self.left_out]
 
 
 ProgressCallback = Callable[[int, int, str], None]
@@ -484,9 +486,7 @@ def _merge_segments(
             max(seg.frames),
             len(seg.frames),
         )
-    left_out = sorted(groups[1:], key=lambda seg: min(seg.poses()))
-    groups[0].segments_left_out = [(min(seg.poses()), max(seg.poses())) for seg in left_out]
-    groups[0].left_out = left_out
+    groups[0].left_out = sorted(groups[1:], key=lambda seg: min(seg.poses()))
     return groups[0]
 
 
