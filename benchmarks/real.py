@@ -199,14 +199,19 @@ def every_nth(seq: Sequence, step: int, offset: int = 0, root: Path | None = Non
     if offset == 0:
         return dataclasses.replace(seq, names=names, timestamps=stamps, step=step)
     images = root / f"{seq.name}_step{step}_offset{offset}" / "images"
-    if images.exists():
-        shutil.rmtree(images)
-    images.mkdir(parents=True)
-    for name in names:
-        (images / name).symlink_to((seq.images / name).resolve())
+    _link_images(images, names, [seq.images / n for n in names])
     lines = [f"{t!r} {n}\n" for t, n in zip(stamps.tolist(), names, strict=True)]
     (images / "timestamps.txt").write_text("".join(lines))
     return dataclasses.replace(seq, images=images, names=names, timestamps=stamps, step=step, offset=offset)
+
+
+def _link_images(images: Path, names: list[str], sources: list[Path]) -> None:
+    """A fresh folder `images` of symbolic links `names` to the image files `sources`."""
+    if images.exists():
+        shutil.rmtree(images)
+    images.mkdir(parents=True)
+    for name, src in zip(names, sources, strict=True):
+        (images / name).symlink_to(src.resolve())
 
 
 def shuffled(seq: Sequence, seed: int, root: Path) -> Sequence:
@@ -214,13 +219,8 @@ def shuffled(seq: Sequence, seed: int, root: Path) -> Sequence:
     in that order and without timestamps.txt (papl-map then times frame k at k / 30 s)."""
     order = np.random.default_rng(seed).permutation(len(seq.names))
     images = root / f"{seq.name}_shuffle{seed}" / "images"
-    if images.exists():
-        shutil.rmtree(images)
-    images.mkdir(parents=True)
-    names = []
-    for k, i in enumerate(order):
-        names.append(f"{k:04d}_{seq.names[i]}")
-        (images / names[-1]).symlink_to((seq.images / seq.names[i]).resolve())
+    names = [f"{k:04d}_{seq.names[i]}" for k, i in enumerate(order)]
+    _link_images(images, names, [seq.images / seq.names[i] for i in order])
     stamps = seq.timestamps[order]
     return dataclasses.replace(seq, images=images, names=names, timestamps=stamps, shuffle=seed)
 
