@@ -89,6 +89,47 @@ class Tracks:
             return slice(*np.searchsorted(frames, [frame, frame + 1]).tolist())
         return frames == frame
 
+    def reversed(self) -> Tracks:
+        """The same observations with the frames in reverse order (row r becomes F-1-r, times run from
+        0 at the last frame), observation rows re-sorted by frame: the recording played backwards, for a
+        second registration. Copies: the original's track ids stay as they are."""
+        n = len(self)
+        flip = n - 1 - np.arange(n)
+
+        def by_frame(frame: np.ndarray, *rest: np.ndarray) -> list[np.ndarray]:
+            order = np.argsort(n - 1 - frame, kind="stable")
+            return [(n - 1 - frame)[order], *(a[order] for a in rest)]
+
+        point_frame, point_track, point_uv = by_frame(self.point_frame, self.point_track, self.point_uv)
+        line_frame, line_track, line_xy, line_vp = by_frame(
+            self.line_frame, self.line_track, self.line_xy, self.line_vp
+        )
+        point_desc_row, point_desc = by_frame(self.point_desc_row, self.point_desc)
+        line_desc_row, line_desc = by_frame(self.line_desc_row, self.line_desc)
+        t = self.timestamp[flip]
+        return Tracks(
+            camera=self.camera,
+            frame_index=self.frame_index[flip].copy(),
+            timestamp=(t[0] - t) if n else t.copy(),
+            is_keyframe=self.is_keyframe[flip].copy(),
+            point_frame=point_frame,
+            point_track=point_track,
+            point_uv=point_uv,
+            line_frame=line_frame,
+            line_track=line_track,
+            line_xy=line_xy,
+            line_vp=line_vp,
+            vp_dirs_c=self.vp_dirs_c[flip].copy(),
+            vertical_vp=self.vertical_vp[flip].copy()
+            if len(self.vertical_vp) == n
+            else self.vertical_vp.copy(),
+            point_desc_row=point_desc_row,
+            point_desc=point_desc,
+            line_desc_row=line_desc_row,
+            line_desc=line_desc,
+            skipped_frames=self.skipped_frames.copy(),
+        )
+
     def save(self, path: str | Path) -> Path:
         """Write to one .npz (camera as JSON) under a temporary name, then rename."""
         path = Path(path)

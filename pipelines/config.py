@@ -20,6 +20,7 @@ from papl_mapper.frontend import FrontendConfig
 from papl_mapper.mapping.culling import CullConfig
 from papl_mapper.mapping.incremental import IncrementalConfig
 from papl_mapper.mapping.lines import LineInitConfig
+from papl_mapper.mapping.reverse_start import ReverseCheckConfig
 from papl_mapper.mapping.rotation_averaging import RotationCheckConfig
 from papl_mapper.mapping.track_completion import CompletionConfig
 from papl_mapper.scale.config import ScaleConfig
@@ -114,6 +115,9 @@ class RunConfig:
     rotations: RotationCheckConfig = field(default_factory=RotationCheckConfig)
     """The first points-only BA checked against keyframe rotations averaged from pairwise essential
     matrices; where they disagree, the BA also runs from those and the lower cost is kept."""
+    reverse: ReverseCheckConfig = field(default_factory=ReverseCheckConfig)
+    """The recording registered backwards as well; the points-only BA also runs from those keyframe poses
+    and they are kept where they fit every observation of the tracks better."""
     completion: CompletionConfig = field(default_factory=CompletionConfig)
     """Track merging, completion and retriangulation after the points-only BA (then BA again)."""
     lines: LineInitConfig = field(default_factory=LineInitConfig)

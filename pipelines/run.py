@@ -49,6 +49,7 @@ from papl_mapper.mapping.frames import keyframe_poses
 from papl_mapper.mapping.incremental import Registration, register_keyframes
 from papl_mapper.mapping.line_completion import complete_map_lines
 from papl_mapper.mapping.lines import LineEstimates
+from papl_mapper.mapping.reverse_start import backward_poses, reverse_checked
 from papl_mapper.mapping.rotation_averaging import rotation_checked
 from papl_mapper.mapping.structure import structured_map, triangulate_map_lines, update_structure
 from papl_mapper.mapping.track_completion import complete_map
@@ -349,13 +350,20 @@ def register(
         tracks.point_track[:] = point_track  # in place, like the loop closures that renamed them
         return reg
     with timer.stage("registration"), progress("keyframes") as cb:
-        local = dataclasses.replace(cfg.ba, relative_error_tol=cfg.local_ba_relative_error_tol)
-        refine = WindowedRefiner(tracks, local, cfg.local_ba_window, cfg.max_point_error_px)
-        reg = register_keyframes(
-            tracks, cfg.mapping, cb, refine if cfg.mapping.refine_every > 0 else None, cfg.seed
-        )
+        reg = _register(tracks, cfg, cb)
     _save(store, timer, "registration", ckpt.write_registration, reg=reg, tracks=tracks)
     return reg
+
+
+def _register(
+    tracks: Tracks, cfg: RunConfig, progress: Callable[[int, int, str], None] | None
+) -> Registration:
+    """`register_keyframes` with the windowed BA as its refinement."""
+    local = dataclasses.replace(cfg.ba, relative_error_tol=cfg.local_ba_relative_error_tol)
+    refine = WindowedRefiner(tracks, local, cfg.local_ba_window, cfg.max_point_error_px)
+    return register_keyframes(
+        tracks, cfg.mapping, progress, refine if cfg.mapping.refine_every > 0 else None, cfg.seed
+    )
 
 
 def build_map(
@@ -438,6 +446,8 @@ def segment_maps(
     resumed run maps them again from the registration's); the track ids the stages rename are put
     back after each, so the map and its trajectory keep theirs."""
     out: list[SegmentMap] = []
+    # the backward registration covers the whole recording, whose main map holds none of the segment's frames
+    segment_cfg = dataclasses.replace(cfg, reverse=dataclasses.replace(cfg.reverse, enabled=False))
     for seg, (a, b) in zip(reg.left_out, reg.segments_left_out, strict=True):
         first, last = int(tracks.frame_index[a]), int(tracks.frame_index[b])
         log.info(
@@ -446,7 +456,7 @@ def segment_maps(
         point_track, line_track = tracks.point_track.copy(), tracks.line_track.copy()
         try:
             with timer.stage("segments"):
-                m, _ = build_map(tracks, seg, cfg, _Timer(), progress, StageStore.off())
+                m, _ = build_map(tracks, seg, segment_cfg, _Timer(), progress, StageStore.off())
                 traj = frame_trajectory(tracks, m, cfg)
         except Exception as exc:  # noqa: BLE001 - a segment's own map is extra: it must not cost the map
             log.warning("tracking segment of frames %d-%d: no map of its own (%s)", first, last, exc)
@@ -510,6 +520,23 @@ def _points_ba(
 
             m, check = rotation_checked(m, cfg.ba, cfg.rotations, cfg.max_point_error_px, report, cfg.seed)
             stats.rotation_check = check.as_dict()
+    if cfg.reverse.enabled:
+        with timer.stage("reverse_check"):
+            with progress("keyframes (backward)") as cb:
+                backward = backward_poses(tracks, functools.partial(_register, cfg=cfg, progress=cb))
+            with progress("BA (points, backward start)") as cb:
+                m, reverse = reverse_checked(
+                    m,
+                    tracks,
+                    backward,
+                    cfg.ba,
+                    cfg.max_point_error_px,
+                    lambda i, n, c: cb(i, n, f"cost {c:.6g}"),
+                )
+            stats.reverse_check = reverse.as_dict()
+        if reverse.kept == "backward":
+            with timer.stage("ba_points"):
+                m, stats.ba_points = _ba(m, cfg, progress, "BA (points, backward start)")
     if cfg.completion.enabled:
         with timer.stage("completion"):
             stats.completion = complete_map(tracks, m, cfg.completion).as_dict()

@@ -46,6 +46,7 @@ class MappingStats:
     ba_points: dict[str, Any] | None = None
     """The last points-only BA (the statistics of `mapping.adjust.adjust`)."""
     rotation_check: dict[str, Any] | None = None
+    reverse_check: dict[str, Any] | None = None
     """The first points BA's rotations against those averaged from pairwise two-view geometry."""
     completion: dict[str, int] | None = None
     """Track completion after the points BA."""

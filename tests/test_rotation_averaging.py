@@ -19,11 +19,11 @@ from papl_mapper.mapping.rotation_averaging import (
     averaged_rotations,
     covisible_pairs,
     pair_residual_deg,
-    point_cost,
     relative_rotation,
     rotation_checked,
     with_rotations,
 )
+from papl_mapper.mapping.second_start import point_cost
 
 
 def _scene(n_kf: int = 8, n_pts: int = 400, noise_px: float = 0.3, seed: int = 0) -> Map:

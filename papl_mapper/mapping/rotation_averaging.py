@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import gtsam
@@ -25,10 +25,10 @@ from scipy.sparse import coo_matrix
 from papl_mapper.backend import BAConfig, global_ba
 from papl_mapper.backend.ba import ProgressFn
 from papl_mapper.errors import GeometryError, OptimizationError
-from papl_mapper.geometry.se3 import project_points, rotation_alignment, rotation_angle_deg
-from papl_mapper.geometry.triangulation import triangulate_points
+from papl_mapper.geometry.se3 import rotation_alignment, rotation_angle_deg
 from papl_mapper.geometry.two_view import find_essential
 from papl_mapper.map import Map
+from papl_mapper.mapping.second_start import point_cost, with_poses
 
 log = logging.getLogger(__name__)
 
@@ -202,38 +202,9 @@ def disagreement_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
 def with_rotations(m: Map, R_wc: np.ndarray) -> Map:
     """A copy of `m` with the keyframe rotations `R_wc` (camera centres kept) and its points triangulated
     anew from those poses; a point the new poses cannot triangulate turns with its first keyframe."""
-    kf = m.keyframes
-    T_new = kf.T_wc.copy()
+    T_new = m.keyframes.T_wc.copy()
     T_new[:, :3, :3] = R_wc
-    pts = m.points
-    kf_row = np.searchsorted(kf.ids, pts.obs_ids[:, 1])
-    pt_row = np.searchsorted(pts.ids, pts.obs_ids[:, 0])
-    X, ok = triangulate_points(pt_row, T_new[kf_row], m.camera.K, pts.obs_uv, len(pts))
-    first = np.full(len(pts), len(kf_row))
-    np.minimum.at(first, pt_row, np.arange(len(kf_row)))
-    X[~ok] = pts.xyz[~ok]  # unobserved points stay where they are
-    turned = np.flatnonzero(~ok & (first < len(kf_row)))
-    k = kf_row[first[turned]]
-    turn = R_wc[k] @ np.swapaxes(kf.T_wc[k, :3, :3], 1, 2)
-    C = kf.T_wc[k, :3, 3]
-    X[turned] = C + np.einsum("nij,nj->ni", turn, pts.xyz[turned] - C)
-    return replace(
-        m, keyframes=replace(kf, T_wc=T_new), points=replace(pts, xyz=X), metadata=dict(m.metadata)
-    )
-
-
-def point_cost(m: Map, sigma_px: float, huber_k: float, max_error_px: float) -> float:
-    """Half the summed Huber loss of the whitened point reprojection errors (gtsam's robust cost) over
-    every observation of the map, each error capped at `max_error_px` (the culling limit: beyond it an
-    observation is an outlier either way, and a point behind its camera counts as one)."""
-    pts = m.points
-    kf_row = np.searchsorted(m.keyframes.ids, pts.obs_ids[:, 1])
-    pt_row = np.searchsorted(pts.ids, pts.obs_ids[:, 0])
-    uv, z = project_points(m.camera.K, m.keyframes.T_wc[kf_row], pts.xyz[pt_row])
-    err = np.where(z > 0, np.minimum(np.linalg.norm(uv - pts.obs_uv, axis=1), max_error_px), max_error_px)
-    e = err / sigma_px
-    loss = np.where(e <= huber_k, 0.5 * e**2, huber_k * e - 0.5 * huber_k**2)
-    return float(loss.sum())
+    return with_poses(m, T_new)
 
 
 def rotation_checked(

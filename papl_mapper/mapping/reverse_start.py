@@ -1,0 +1,160 @@
+"""The recording registered backwards: a second start for the global BA.
+
+Registration chains poses frame after frame. In a fast turn (little translation, a view that changes
+within a few frames) its windowed BA can settle on a wrong configuration, the rotation through the
+turn off by degrees and the scale after it jumped, a basin the global BA does not leave; the same
+tracks registered from the last frame to the first meet the turn from its other side and mostly do
+not fall in it (benchmarks/results/notes.md). An offline mapper has the whole recording, so it tries
+both. Each set of keyframe poses starts a points BA over every observation of the tracks at the
+map's keyframes (not only over the observations the forward registration kept: those were chosen by
+agreeing with it), outliers beyond the error limit culled first as before every BA. The two results
+are judged by their poses alone on the same data (`second_start.pose_cost`: every track re-fitted to
+the poses, errors capped), and the backward one is taken only when its cost is lower by more than the
+cost's own spread under the noise model (one standard deviation, sqrt(n) for n observations), so two
+starts that reach one basin keep the map as it was.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from papl_mapper.backend import BAConfig, global_ba
+from papl_mapper.backend.ba import ProgressFn
+from papl_mapper.errors import GeometryError, OptimizationError
+from papl_mapper.geometry.se3 import invert
+from papl_mapper.geometry.similarity import umeyama
+from papl_mapper.geometry.triangulation import triangulate_points
+from papl_mapper.map import Map
+from papl_mapper.mapping.assemble import assemble_map, cull_observations
+from papl_mapper.mapping.incremental import Registration
+from papl_mapper.mapping.lines import LineEstimates
+from papl_mapper.mapping.second_start import pose_cost
+from papl_mapper.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ReverseCheckConfig:
+    """Settings of the second start from the recording registered backwards."""
+
+    enabled: bool = True
+    """Register the recording backwards too, and start the global BA from those keyframe poses where
+    they fit every observation of the tracks better (costs about one more registration)."""
+
+
+@dataclass
+class ReverseCheck:
+    """What the check found: how many of the map's keyframes the backward registration posed, the
+    observations both starts were judged on, their costs and the margin, and which poses were kept."""
+
+    keyframes: int = 0
+    posed_backward: int = 0
+    observations: int = 0
+    cost_forward: float | None = None
+    cost_backward: float | None = None
+    margin: float | None = None
+    kept: str = "forward"
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def backward_poses(tracks: Tracks, register: Callable[[Tracks], Registration]) -> dict[int, np.ndarray]:
+    """T_wc by frame row of every frame that `register` poses in the main map of the reversed tracks
+    (`Tracks.reversed`; the segments it leaves out have frames and scales of their own)."""
+    n = len(tracks)
+    reg = register(tracks.reversed())
+    return {n - 1 - f: invert(T) for f, T in reg.poses().items()}
+
+
+def _aligned(T_wc: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Poses `T_wc` (N, 4, 4) moved by the similarity that best takes their centres onto `reference`'s."""
+    s = umeyama(T_wc[:, :3, 3], reference[:, :3, 3])
+    out = T_wc.copy()
+    out[:, :3, :3] = s.R @ T_wc[:, :3, :3]
+    out[:, :3, 3] = s.scale * T_wc[:, :3, 3] @ s.R.T + s.t
+    return out
+
+
+def _track_maps(tracks: Tracks, frames: np.ndarray, starts: list[np.ndarray]) -> list[Map]:
+    """One points-only map per start (keyframe poses (N, 4, 4) at frame rows `frames`, in one frame and
+    scale) over every observation of the tracks in those frames, with the same points in each: the
+    tracks seen at least twice that some start triangulates. A start that cannot (the point would lie
+    behind a camera) takes another's point: its observations then count as outliers against it, so a
+    start is not judged on only the points that suit it."""
+    sel = np.flatnonzero(np.isin(tracks.point_frame, frames))
+    ids, point_row = np.unique(tracks.point_track[sel], return_inverse=True)
+    kf_row = np.searchsorted(frames, tracks.point_frame[sel])
+    uv = tracks.point_uv[sel]
+    tri = [triangulate_points(point_row, T[kf_row], tracks.camera.K, uv, len(ids), 0.0) for T in starts]
+    ok = np.array([t[1] for t in tri])
+    keep = np.flatnonzero((np.bincount(point_row, minlength=len(ids)) >= 2) & ok.any(axis=0))
+    fallback = np.array([t[0] for t in tri])[ok.argmax(axis=0), np.arange(len(ids))]  # a start's own, if any
+    rows = sel[np.isin(point_row, keep)]
+    maps = []
+    for T_wc, (X, good) in zip(starts, tri, strict=True):
+        X = np.where(good[:, None], X, fallback)
+        maps.append(
+            assemble_map(
+                tracks,
+                {int(f): T for f, T in zip(frames, T_wc, strict=True)},
+                {int(ids[p]): X[p] for p in keep},
+                LineEstimates.empty(),
+                point_rows=rows,
+            )
+        )
+    return maps
+
+
+def reverse_checked(
+    m: Map,
+    tracks: Tracks,
+    backward: dict[int, np.ndarray],
+    ba: BAConfig,
+    max_error_px: float,
+    progress: ProgressFn | None = None,
+) -> tuple[Map, ReverseCheck]:
+    """`m` (a points map after its global BA) against the keyframe poses of the backward registration
+    (`backward`, T_wc by frame row): both start a points BA over every observation of the tracks at
+    m's keyframes (outliers culled first); where the backward one's poses cost less by more than the
+    cost's spread, the map that BA made, else `m`. Taken whole, not as poses for m's points: the
+    observations the forward registration kept were chosen by agreeing with the poses that lost."""
+    frames = m.keyframes.ids
+    check = ReverseCheck(keyframes=len(frames), posed_backward=int(sum(int(f) in backward for f in frames)))
+    if check.posed_backward < len(frames) or len(frames) < 3 or not ba.optimize_poses:
+        return m, check  # the backward map does not hold every keyframe: no common problem to judge on
+    T_back = _aligned(np.stack([backward[int(f)] for f in frames]), m.keyframes.T_wc)
+    ends = []
+    try:
+        for start in _track_maps(tracks, frames, [m.keyframes.T_wc, T_back]):
+            cull_observations(start, max_error_px, max_error_px, ba.min_views, 1)
+            ends.append(global_ba(start, ba, progress).map)
+    except (GeometryError, OptimizationError) as exc:
+        log.info("backward registration: its BA failed (%s); the forward map kept", exc)
+        return m, check
+    (cost_f, n), (cost_b, _) = (
+        pose_cost(tracks, frames, e.keyframes.T_wc, ba.point_sigma_px, ba.huber_k, max_error_px) for e in ends
+    )
+    check.observations = n
+    check.cost_forward, check.cost_backward = cost_f, cost_b
+    check.margin = float(np.sqrt(check.observations))
+    better = cost_b < cost_f - check.margin
+    log.info(
+        "backward registration: started from its poses, the BA over every observation of the tracks at "
+        "the %d keyframes (%d) ends at cost %.6g against %.6g from the forward poses: %s",
+        len(frames),
+        check.observations,
+        cost_b,
+        cost_f,
+        "backward poses kept" if better else "forward poses kept",
+    )
+    if not better:
+        return m, check
+    check.kept = "backward"
+    ends[1].metadata = dict(m.metadata)
+    return ends[1], check
