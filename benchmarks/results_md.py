@@ -192,6 +192,9 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
             "accuracy_final_completion.json": [SEEDED_ACCURACY_ROWS],
             "accuracy_frames.json": [SEEDED_ACCURACY_ROWS],
             "accuracy_video.json": [SEEDED_ACCURACY_ROWS],
+            "handheld.json": [
+                Rows("rows", ("scene", "seed", "variant", "ate_rel_path", "posed", "map_s", "reverse_kept"))
+            ],
             **{
                 name: [
                     Rows(

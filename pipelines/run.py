@@ -531,6 +531,7 @@ def _points_ba(
                     backward,
                     cfg.ba,
                     cfg.max_point_error_px,
+                    cfg.reverse,
                     lambda i, n, c: cb(i, n, f"cost {c:.6g}"),
                 )
             stats.reverse_check = reverse.as_dict()

@@ -8,7 +8,7 @@ from scipy.optimize import least_squares
 
 from papl_mapper.geometry.se3 import invert, project_points, so3_exp
 from papl_mapper.geometry.triangulation import triangulate_points
-from papl_mapper.mapping.second_start import pose_cost, refit_points, with_poses
+from papl_mapper.mapping.second_start import paired_z, pose_losses, refit_points, with_poses
 from tests.test_mapping_incremental import make_tracks
 from tests.test_rotation_averaging import _scene
 
@@ -41,21 +41,40 @@ def test_refit_points_reaches_the_least_squares_point_of_each_track() -> None:
         assert np.allclose(X[p], ref, atol=1e-6), p
 
 
-def test_pose_cost_is_zero_at_the_true_poses_and_grows_away_from_them() -> None:
+def test_pose_losses_are_zero_at_the_true_poses_and_grow_away_from_them() -> None:
     tracks, T_wc = _observations(0.0)
-    cost, n = pose_cost(tracks, FRAMES, T_wc[FRAMES], 1.0, 1.345, 4.0)
+    losses, track = pose_losses(tracks, FRAMES, T_wc[FRAMES], 1.0, 1.345, 4.0)
+    n = len(losses)
     seen = np.isin(tracks.point_frame, FRAMES)
     ids, counts = np.unique(tracks.point_track[seen], return_counts=True)
     assert n == counts[counts >= 2].sum()  # every observation of each track seen twice
-    assert cost == pytest.approx(0.0, abs=1e-6)
+    assert sorted(set(track.tolist())) == ids[counts >= 2].tolist()
+    assert losses.sum() == pytest.approx(0.0, abs=1e-6)
     turned = T_wc[FRAMES].copy()
     turned[5:, :3, :3] = so3_exp(np.radians([0.0, 0.0, 1.0])) @ turned[5:, :3, :3]
-    worse, _ = pose_cost(tracks, FRAMES, turned, 1.0, 1.345, 4.0)
-    assert worse > 100.0
+    worse, _ = pose_losses(tracks, FRAMES, turned, 1.0, 1.345, 4.0)
+    assert worse.sum() > 100.0
     flipped = T_wc[FRAMES].copy()
     flipped[:, :3, :3] = flipped[:, :3, :3] @ np.diag([-1.0, -1.0, 1.0])  # every camera looking backwards
-    capped, _ = pose_cost(tracks, FRAMES, flipped, 1.0, 1.345, 4.0)
-    assert capped == pytest.approx(n * (1.345 * 4.0 - 0.5 * 1.345**2), rel=0.05)  # nearly all at the cap
+    capped, _ = pose_losses(tracks, FRAMES, flipped, 1.0, 1.345, 4.0)
+    assert capped.sum() == pytest.approx(
+        n * (1.345 * 4.0 - 0.5 * 1.345**2), rel=0.05
+    )  # nearly all at the cap
+
+
+def test_paired_z_counts_tracks_not_observations() -> None:
+    """A difference that every track shows is significant; the same total from one track is not, however
+    many observations that track has; no spread or one track gives 0."""
+    rng = np.random.default_rng(0)
+    groups = np.repeat(np.arange(200), 10)
+    consistent = -0.1 + rng.normal(0, 0.05, len(groups))
+    assert paired_z(consistent, groups) < -10
+    one_track = np.zeros(len(groups))
+    one_track[groups == 7] = -20.0  # the same total, all from one track
+    one_track += rng.normal(0, 0.05, len(groups))
+    assert -3 < paired_z(one_track, groups) < 0
+    assert paired_z(np.zeros(10), np.arange(10)) == 0.0
+    assert paired_z(np.ones(5), np.zeros(5, int)) == 0.0
 
 
 def test_with_poses_moves_the_points_with_a_rigid_motion_of_the_keyframes() -> None:

@@ -8,10 +8,10 @@ not fall in it (benchmarks/results/notes.md). An offline mapper has the whole re
 both. Each set of keyframe poses starts a points BA over every observation of the tracks at the
 map's keyframes (not only over the observations the forward registration kept: those were chosen by
 agreeing with it), outliers beyond the error limit culled first as before every BA. The two results
-are judged by their poses alone on the same data (`second_start.pose_cost`: every track re-fitted to
-the poses, errors capped), and the backward one is taken only when its cost is lower by more than the
-cost's own spread under the noise model (one standard deviation, sqrt(n) for n observations), so two
-starts that reach one basin keep the map as it was.
+are judged by their poses alone on the same data (`second_start.pose_losses`: every track re-fitted
+to the poses, errors capped), and the backward one is taken only when the tracks favour it
+significantly (a paired test over the tracks, `second_start.paired_z`), so two starts that reach one
+basin, or two the data cannot tell apart, keep the map as it was.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from papl_mapper.map import Map
 from papl_mapper.mapping.assemble import assemble_map, cull_observations
 from papl_mapper.mapping.incremental import Registration
 from papl_mapper.mapping.lines import LineEstimates
-from papl_mapper.mapping.second_start import pose_cost
+from papl_mapper.mapping.second_start import paired_z, pose_losses
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -45,19 +45,24 @@ class ReverseCheckConfig:
     enabled: bool = True
     """Register the recording backwards too, and start the global BA from those keyframe poses where
     they fit every observation of the tracks better (costs about one more registration)."""
+    significance: float = 3.0
+    """The backward poses are taken when the tracks' cost differences favour them by more than this
+    many standard errors (a paired test over the tracks: the observations of one track share its
+    errors, the tracks are the independent samples)."""
 
 
 @dataclass
 class ReverseCheck:
     """What the check found: how many of the map's keyframes the backward registration posed, the
-    observations both starts were judged on, their costs and the margin, and which poses were kept."""
+    observations both starts were judged on, their costs, the paired test's z (negative: the backward
+    poses fit better) and which poses were kept."""
 
     keyframes: int = 0
     posed_backward: int = 0
     observations: int = 0
     cost_forward: float | None = None
     cost_backward: float | None = None
-    margin: float | None = None
+    z: float | None = None
     kept: str = "forward"
 
     def as_dict(self) -> dict:
@@ -117,13 +122,15 @@ def reverse_checked(
     backward: dict[int, np.ndarray],
     ba: BAConfig,
     max_error_px: float,
+    cfg: ReverseCheckConfig | None = None,
     progress: ProgressFn | None = None,
 ) -> tuple[Map, ReverseCheck]:
     """`m` (a points map after its global BA) against the keyframe poses of the backward registration
     (`backward`, T_wc by frame row): both start a points BA over every observation of the tracks at
-    m's keyframes (outliers culled first); where the backward one's poses cost less by more than the
-    cost's spread, the map that BA made, else `m`. Taken whole, not as poses for m's points: the
+    m's keyframes (outliers culled first); where the backward one's poses fit the tracks significantly
+    better (`cfg.significance`), the map that BA made, else `m`. Taken whole, not as poses for m's points: the
     observations the forward registration kept were chosen by agreeing with the poses that lost."""
+    cfg = cfg or ReverseCheckConfig()
     frames = m.keyframes.ids
     check = ReverseCheck(keyframes=len(frames), posed_backward=int(sum(int(f) in backward for f in frames)))
     if check.posed_backward < len(frames) or len(frames) < 3 or not ba.optimize_poses:
@@ -137,20 +144,23 @@ def reverse_checked(
     except (GeometryError, OptimizationError) as exc:
         log.info("backward registration: its BA failed (%s); the forward map kept", exc)
         return m, check
-    (cost_f, n), (cost_b, _) = (
-        pose_cost(tracks, frames, e.keyframes.T_wc, ba.point_sigma_px, ba.huber_k, max_error_px) for e in ends
+    (loss_f, track), (loss_b, _) = (
+        pose_losses(tracks, frames, e.keyframes.T_wc, ba.point_sigma_px, ba.huber_k, max_error_px)
+        for e in ends
     )
-    check.observations = n
-    check.cost_forward, check.cost_backward = cost_f, cost_b
-    check.margin = float(np.sqrt(check.observations))
-    better = cost_b < cost_f - check.margin
+    check.observations = len(loss_f)
+    check.cost_forward, check.cost_backward = float(loss_f.sum()), float(loss_b.sum())
+    check.z = paired_z(loss_b - loss_f, track)
+    better = check.z < -cfg.significance
     log.info(
         "backward registration: started from its poses, the BA over every observation of the tracks at "
-        "the %d keyframes (%d) ends at cost %.6g against %.6g from the forward poses: %s",
+        "the %d keyframes (%d) ends at cost %.6g against %.6g from the forward poses (z %.1f over the "
+        "tracks): %s",
         len(frames),
         check.observations,
-        cost_b,
-        cost_f,
+        check.cost_backward,
+        check.cost_forward,
+        check.z,
         "backward poses kept" if better else "forward poses kept",
     )
     if not better:
