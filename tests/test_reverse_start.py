@@ -89,6 +89,17 @@ def test_backward_poses_are_returned_by_forward_frame_row() -> None:
     assert np.allclose(poses[n - 1], truth[n - 1]) and np.allclose(poses[n - 4], truth[n - 4])
 
 
+def test_a_backward_registration_that_fails_gives_no_poses() -> None:
+    from papl_mapper.errors import UnmappableError
+
+    tracks, _ = _recording()
+
+    def register(rev):
+        raise UnmappableError("could not initialise from 3 keyframes: too little parallax")
+
+    assert backward_poses(tracks, register) == {}
+
+
 def test_a_map_in_a_wrong_basin_is_replaced_by_the_backward_start() -> None:
     """The forward map's second half turned 90 degrees and halved: its own BA keeps it there (the points
     it could triangulate hold it); the backward poses (the truth, in another frame and scale) fit every

@@ -24,7 +24,7 @@ import numpy as np
 
 from papl_mapper.backend import BAConfig, global_ba
 from papl_mapper.backend.ba import ProgressFn
-from papl_mapper.errors import GeometryError, OptimizationError
+from papl_mapper.errors import GeometryError, OptimizationError, UnmappableError
 from papl_mapper.geometry.se3 import invert
 from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.geometry.triangulation import triangulate_points
@@ -71,9 +71,14 @@ class ReverseCheck:
 
 def backward_poses(tracks: Tracks, register: Callable[[Tracks], Registration]) -> dict[int, np.ndarray]:
     """T_wc by frame row of every frame that `register` poses in the main map of the reversed tracks
-    (`Tracks.reversed`; the segments it leaves out have frames and scales of their own)."""
+    (`Tracks.reversed`; the segments it leaves out have frames and scales of their own); none where it
+    cannot register them (the check is then skipped, the forward map kept)."""
     n = len(tracks)
-    reg = register(tracks.reversed())
+    try:
+        reg = register(tracks.reversed())
+    except (UnmappableError, GeometryError, OptimizationError) as exc:
+        log.info("backward registration: none (%s)", str(exc).split(";")[0])
+        return {}
     return {n - 1 - f: invert(T) for f, T in reg.poses().items()}
 
 
