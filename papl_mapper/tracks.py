@@ -91,21 +91,29 @@ class Tracks:
 
     def reversed(self) -> Tracks:
         """The same observations with the frames in reverse order (row r becomes F-1-r, times run from
-        0 at the last frame), observation rows re-sorted by frame: the recording played backwards, for a
-        second registration. Copies: the original's track ids stay as they are."""
+        0 at the last frame), observation rows re-sorted by frame and the keyframe descriptors' rows
+        following them: the recording played backwards, for a second registration. Copies: the
+        original's track ids stay as they are."""
         n = len(self)
         flip = n - 1 - np.arange(n)
 
-        def by_frame(frame: np.ndarray, *rest: np.ndarray) -> list[np.ndarray]:
+        def by_frame(frame: np.ndarray, desc_row: np.ndarray, *rest: np.ndarray) -> list[np.ndarray]:
+            """Observation arrays in the new frame order, and the descriptor rows (indices of observation
+            rows) renumbered to follow their observations, in ascending order."""
             order = np.argsort(n - 1 - frame, kind="stable")
-            return [(n - 1 - frame)[order], *(a[order] for a in rest)]
+            new_row = np.empty(len(order), np.int64)
+            new_row[order] = np.arange(len(order))
+            moved = new_row[desc_row]
+            by_row = np.argsort(moved, kind="stable")
+            return [(n - 1 - frame)[order], *(a[order] for a in rest), moved[by_row], by_row]
 
-        point_frame, point_track, point_uv = by_frame(self.point_frame, self.point_track, self.point_uv)
-        line_frame, line_track, line_xy, line_vp = by_frame(
-            self.line_frame, self.line_track, self.line_xy, self.line_vp
+        point_frame, point_track, point_uv, point_desc_row, p_by = by_frame(
+            self.point_frame, self.point_desc_row, self.point_track, self.point_uv
         )
-        point_desc_row, point_desc = by_frame(self.point_desc_row, self.point_desc)
-        line_desc_row, line_desc = by_frame(self.line_desc_row, self.line_desc)
+        line_frame, line_track, line_xy, line_vp, line_desc_row, l_by = by_frame(
+            self.line_frame, self.line_desc_row, self.line_track, self.line_xy, self.line_vp
+        )
+        point_desc, line_desc = self.point_desc[p_by], self.line_desc[l_by]
         t = self.timestamp[flip]
         return Tracks(
             camera=self.camera,

@@ -76,6 +76,30 @@ def test_reversed_tracks_play_the_recording_backwards() -> None:
     assert tracks.point_track.min() >= 0  # a copy: the original's track ids stay
 
 
+def test_reversed_tracks_keep_each_descriptor_on_its_observation() -> None:
+    """Keyframe descriptors index observation rows: after the rows are re-sorted, each descriptor still
+    belongs to the observation (frame, track) it described."""
+    import dataclasses
+
+    tracks, _ = _recording()
+    rng = np.random.default_rng(3)
+    rows = np.sort(rng.choice(len(tracks.point_frame), 300, replace=False))
+    desc = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    tracks = dataclasses.replace(tracks, point_desc_row=rows, point_desc=desc)
+    n = len(tracks)
+    rev = tracks.reversed()
+    assert np.all(np.diff(rev.point_desc_row) > 0)
+    before = {
+        (int(tracks.point_frame[r]), int(tracks.point_track[r])): d.tobytes()
+        for r, d in zip(rows, desc, strict=True)
+    }
+    after = {
+        (n - 1 - int(rev.point_frame[r]), int(rev.point_track[r])): d.tobytes()
+        for r, d in zip(rev.point_desc_row, rev.point_desc, strict=True)
+    }
+    assert after == before
+
+
 def test_backward_poses_are_returned_by_forward_frame_row() -> None:
     tracks, truth = _recording()
     n = len(tracks)
