@@ -46,8 +46,10 @@ class MappingStats:
     ba_points: dict[str, Any] | None = None
     """The last points-only BA (the statistics of `mapping.adjust.adjust`)."""
     rotation_check: dict[str, Any] | None = None
-    reverse_check: dict[str, Any] | None = None
     """The first points BA's rotations against those averaged from pairwise two-view geometry."""
+    reverse_check: dict[str, Any] | None = None
+    """The points BA from the forward registration against the one from the backward registration
+    (`mapping.reverse_start.ReverseCheck`)."""
     completion: dict[str, int] | None = None
     """Track completion after the points BA."""
     ba: dict[str, Any] | None = None

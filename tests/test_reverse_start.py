@@ -54,7 +54,7 @@ def _adjusted_map(tracks, T_wc: np.ndarray):
 
 def _centre_error(T_wc: np.ndarray, truth: np.ndarray) -> float:
     s = umeyama(T_wc[:, :3, 3], truth[:, :3, 3])
-    return float(np.abs(s.scale * T_wc[:, :3, 3] @ s.R.T + s.t - truth[:, :3, 3]).max())
+    return float(np.abs(s.apply(T_wc[:, :3, 3]) - truth[:, :3, 3]).max())
 
 
 def test_reversed_tracks_play_the_recording_backwards() -> None:

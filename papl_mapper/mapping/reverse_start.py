@@ -82,15 +82,6 @@ def backward_poses(tracks: Tracks, register: Callable[[Tracks], Registration]) -
     return {n - 1 - f: invert(T) for f, T in reg.poses().items()}
 
 
-def _aligned(T_wc: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """Poses `T_wc` (N, 4, 4) moved by the similarity that best takes their centres onto `reference`'s."""
-    s = umeyama(T_wc[:, :3, 3], reference[:, :3, 3])
-    out = T_wc.copy()
-    out[:, :3, :3] = s.R @ T_wc[:, :3, :3]
-    out[:, :3, 3] = s.scale * T_wc[:, :3, 3] @ s.R.T + s.t
-    return out
-
-
 def _track_maps(tracks: Tracks, frames: np.ndarray, starts: list[np.ndarray]) -> list[Map]:
     """One points-only map per start (keyframe poses (N, 4, 4) at frame rows `frames`, in one frame and
     scale) over every observation of the tracks in those frames, with the same points in each: the
@@ -140,7 +131,8 @@ def reverse_checked(
     check = ReverseCheck(keyframes=len(frames), posed_backward=int(sum(int(f) in backward for f in frames)))
     if check.posed_backward < len(frames) or len(frames) < 3 or not ba.optimize_poses:
         return m, check  # the backward map does not hold every keyframe: no common problem to judge on
-    T_back = _aligned(np.stack([backward[int(f)] for f in frames]), m.keyframes.T_wc)
+    T_back = np.stack([backward[int(f)] for f in frames])
+    T_back = umeyama(T_back[:, :3, 3], m.keyframes.T_wc[:, :3, 3]).apply_poses(T_back)  # into m's frame
     ends = []
     try:
         for start in _track_maps(tracks, frames, [m.keyframes.T_wc, T_back]):
