@@ -46,19 +46,19 @@ from papl_mapper.mapping.assemble import (
 )
 from papl_mapper.mapping.culling import CullStats, cull_keyframes
 from papl_mapper.mapping.frames import keyframe_poses
-from papl_mapper.mapping.incremental import Registration, register_keyframes
+from papl_mapper.mapping.incremental import Registration
 from papl_mapper.mapping.line_completion import complete_map_lines
 from papl_mapper.mapping.lines import LineEstimates
-from papl_mapper.mapping.reverse_start import backward_poses, reverse_checked
+from papl_mapper.mapping.reverse_start import reverse_checked
 from papl_mapper.mapping.rotation_averaging import rotation_checked
 from papl_mapper.mapping.structure import structured_map, triangulate_map_lines, update_structure
 from papl_mapper.mapping.track_completion import complete_map
-from papl_mapper.mapping.windowed import WindowedRefiner
 from papl_mapper.outputs import add_outputs
 from papl_mapper.pipelines import checkpoint as ckpt
 from papl_mapper.pipelines.checkpoint import StageStore
 from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.pipelines.logfile import close_log, file_log
+from papl_mapper.pipelines.registration import BackwardRegistration, register_tracks
 from papl_mapper.pipelines.run_outputs import (
     Extras,
     SegmentMap,
@@ -225,6 +225,7 @@ def _map_recording(
     timer = _Timer()
     timer.current = "reading the input"
     store: StageStore | None = None
+    backward = BackwardRegistration(cfg)  # its worker's imports overlap the frontend
     try:
         i = cfg.input
         rec = open_recording(recording, i.step, i.start_s, i.end_s, i.max_size)
@@ -241,6 +242,7 @@ def _map_recording(
                 store.save("frontend", functools.partial(ckpt.write_tracks, tracks=tracks), frontend_stats)
         else:
             tracks, frontend_stats = loaded
+        backward.submit(tracks)  # before the forward registration renames tracks
         try:
             reg = register(tracks, cfg, timer, progress, store)
         except UnmappableError as exc:
@@ -253,7 +255,8 @@ def _map_recording(
             )
             write_unmapped(out, unmapped_trajectory(tracks.timestamp, exc.T_cw_frames), cfg, summary)
             raise
-        m, stats = build_map(tracks, reg, cfg, timer, progress, store)
+        m, stats = build_map(tracks, reg, cfg, timer, progress, store, backward)
+        backward.close()
         focal_check = None
         if cfg.focal.enabled:
             with timer.stage("focal_check"):
@@ -316,6 +319,8 @@ def _map_recording(
     except KeyboardInterrupt as exc:
         latest = store.latest if store is not None else None
         raise RunInterrupted(timer.current or "between stages", latest, out / ".checkpoint") from exc
+    finally:
+        backward.close()
     return m, summary, segments
 
 
@@ -335,8 +340,10 @@ def map_tracks(
     timer = timer or _Timer()
     progress = progress or _silent
     store = store or StageStore.off()
-    reg = register(tracks, cfg, timer, progress, store)
-    return build_map(tracks, reg, cfg, timer, progress, store)
+    with BackwardRegistration(cfg) as backward:
+        backward.submit(tracks)  # before the forward registration renames tracks
+        reg = register(tracks, cfg, timer, progress, store)
+        return build_map(tracks, reg, cfg, timer, progress, store, backward)
 
 
 def register(
@@ -350,20 +357,9 @@ def register(
         tracks.point_track[:] = point_track  # in place, like the loop closures that renamed them
         return reg
     with timer.stage("registration"), progress("keyframes") as cb:
-        reg = _register(tracks, cfg, cb)
+        reg = register_tracks(tracks, cfg, cb)
     _save(store, timer, "registration", ckpt.write_registration, reg=reg, tracks=tracks)
     return reg
-
-
-def _register(
-    tracks: Tracks, cfg: RunConfig, progress: Callable[[int, int, str], None] | None
-) -> Registration:
-    """`register_keyframes` with the windowed BA as its refinement."""
-    local = dataclasses.replace(cfg.ba, relative_error_tol=cfg.local_ba_relative_error_tol)
-    refine = WindowedRefiner(tracks, local, cfg.local_ba_window, cfg.max_point_error_px)
-    return register_keyframes(
-        tracks, cfg.mapping, progress, refine if cfg.mapping.refine_every > 0 else None, cfg.seed
-    )
 
 
 def build_map(
@@ -373,9 +369,12 @@ def build_map(
     timer: _Timer,
     progress: ProgressFactory,
     store: StageStore,
+    backward: BackwardRegistration | None = None,
 ) -> tuple[Map, MappingStats]:
     """Everything after registration: the registered keyframes -> optimised, upright Map and
-    statistics; the points BA and full BA checkpointed in `store` and resumed from it."""
+    statistics; the points BA and full BA checkpointed in `store` and resumed from it. `backward`:
+    the backward registration of the tracks (`cfg.reverse`), submitted before the forward one; without
+    it, the tracks as they are now are registered backwards here."""
     read_map = functools.partial(ckpt.read_map, tracks=tracks)
     full = store.load("ba_full", read_map)
     points = store.load("ba_points", read_map) if full is None else None
@@ -387,7 +386,7 @@ def build_map(
             m, stats, _, point_track = points
             tracks.point_track[:] = point_track
         else:
-            m, stats = _points_ba(tracks, reg, cfg, timer, progress)
+            m, stats = _points_ba(tracks, reg, cfg, timer, progress, backward)
             _save(store, timer, "ba_points", ckpt.write_map, m=m, point_track=tracks.point_track, stats=stats)
         upright = upright_by_vanishing_points(tracks, m)
         if not upright:
@@ -492,7 +491,12 @@ def _save(store: StageStore, timer: _Timer, stage: str, write: Callable[..., Non
 
 
 def _points_ba(
-    tracks: Tracks, reg: Registration, cfg: RunConfig, timer: _Timer, progress: ProgressFactory
+    tracks: Tracks,
+    reg: Registration,
+    cfg: RunConfig,
+    timer: _Timer,
+    progress: ProgressFactory,
+    backward: BackwardRegistration | None,
 ) -> tuple[Map, MappingStats]:
     """Keyframe culling, the points-only map and its global BA, with the statistics so far."""
     n_registered = len(reg.frames)
@@ -522,19 +526,22 @@ def _points_ba(
             stats.rotation_check = check.as_dict()
     if cfg.reverse.enabled:
         with timer.stage("reverse_check"):
+            if backward is None:
+                backward = BackwardRegistration(cfg, worker=False)
+                backward.submit(tracks)
             with progress("keyframes (backward)") as cb:
-                backward = backward_poses(tracks, functools.partial(_register, cfg=cfg, progress=cb))
+                back = backward.result(cb)
             with progress("BA (points, backward start)") as cb:
                 m, reverse = reverse_checked(
                     m,
                     tracks,
-                    backward,
+                    back.poses,
                     cfg.ba,
                     cfg.max_point_error_px,
                     cfg.reverse,
                     lambda i, n, c: cb(i, n, f"cost {c:.6g}"),
                 )
-            stats.reverse_check = reverse.as_dict()
+            stats.reverse_check = reverse.as_dict() | back.summary()
         if reverse.kept == "backward":
             with timer.stage("ba_points"):
                 m, stats.ba_points = _ba(m, cfg, progress, "BA (points, backward start)")

@@ -108,7 +108,7 @@ def test_backward_poses_are_returned_by_forward_frame_row() -> None:
         assert len(rev) == n
         return Registration(frames=[0, 3], T_cw={0: invert(truth[n - 1]), 3: invert(truth[n - 4])})
 
-    poses = backward_poses(tracks, register)
+    poses = backward_poses(tracks.reversed(), register)
     assert sorted(poses) == [n - 4, n - 1]
     assert np.allclose(poses[n - 1], truth[n - 1]) and np.allclose(poses[n - 4], truth[n - 4])
 
@@ -121,7 +121,7 @@ def test_a_backward_registration_that_fails_gives_no_poses() -> None:
     def register(rev):
         raise UnmappableError("could not initialise from 3 keyframes: too little parallax")
 
-    assert backward_poses(tracks, register) == {}
+    assert backward_poses(tracks.reversed(), register) == {}
 
 
 def test_a_map_in_a_wrong_basin_is_replaced_by_the_backward_start() -> None:

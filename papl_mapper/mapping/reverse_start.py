@@ -69,13 +69,15 @@ class ReverseCheck:
         return dict(self.__dict__)
 
 
-def backward_poses(tracks: Tracks, register: Callable[[Tracks], Registration]) -> dict[int, np.ndarray]:
-    """T_wc by frame row of every frame that `register` poses in the main map of the reversed tracks
-    (`Tracks.reversed`; the segments it leaves out have frames and scales of their own); none where it
-    cannot register them (the check is then skipped, the forward map kept)."""
-    n = len(tracks)
+def backward_poses(
+    reversed_tracks: Tracks, register: Callable[[Tracks], Registration]
+) -> dict[int, np.ndarray]:
+    """T_wc by frame row of the forward tracks of every frame that `register` poses in the main map of
+    `reversed_tracks` (`Tracks.reversed`; the segments it leaves out have frames and scales of their
+    own); none where it cannot register them (the check is then skipped, the forward map kept)."""
+    n = len(reversed_tracks)
     try:
-        reg = register(tracks.reversed())
+        reg = register(reversed_tracks)
     except (UnmappableError, GeometryError, OptimizationError) as exc:
         log.info("backward registration: none (%s)", str(exc).split(";")[0])
         return {}

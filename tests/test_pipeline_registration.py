@@ -1,0 +1,85 @@
+"""The backward registration in a worker process (pipelines/registration.py): the same poses as in the
+run's process, and a worker that dies or cannot run costs nothing but time."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from papl_mapper.geometry.se3 import invert
+from papl_mapper.geometry.similarity import umeyama
+from papl_mapper.pipelines import registration
+from papl_mapper.pipelines.config import RunConfig
+from papl_mapper.pipelines.registration import BackwardRegistration
+from tests.test_mapping_incremental import make_tracks
+
+
+@pytest.fixture(scope="module")
+def recording():
+    tracks, T_cw, _ = make_tracks(n_frames=30, noise_px=0.3)
+    return tracks, invert(T_cw)
+
+
+def _poses(result) -> tuple[list[int], np.ndarray]:
+    frames = sorted(result.poses)
+    return frames, np.stack([result.poses[f] for f in frames])
+
+
+def test_the_worker_registers_the_tracks_as_this_process_does(recording) -> None:
+    tracks, truth = recording
+    cfg = RunConfig()
+    with BackwardRegistration(cfg) as worker:
+        worker.submit(tracks)
+        tracks.point_track[:] = tracks.point_track[::-1].copy()  # renamed after submit: not seen
+        in_worker = worker.result()
+        tracks.point_track[:] = tracks.point_track[::-1].copy()
+    here = BackwardRegistration(cfg, worker=False)
+    here.submit(tracks)
+    in_process = here.result()
+    assert in_worker.in_worker and not in_process.in_worker
+    frames, T = _poses(in_worker)
+    assert frames == sorted(in_process.poses) and len(frames) >= 10
+    assert np.array_equal(T, _poses(in_process)[1])  # the same computation, bit for bit
+    s = umeyama(T[:, :3, 3], truth[frames, :3, 3])  # and the right one
+    assert np.abs(s.apply(T[:, :3, 3]) - truth[frames, :3, 3]).max() < 0.02
+    assert in_worker.summary()["in_worker"] is True and in_worker.summary()["registration_s"] > 0
+
+
+def test_the_workers_log_reaches_this_process(recording, caplog) -> None:
+    tracks, _ = recording
+    with BackwardRegistration(RunConfig()) as worker, caplog.at_level(logging.INFO, logger="papl_mapper"):
+        worker.submit(tracks)
+        worker.result()
+    assert any(r.getMessage().startswith("backward registration: initialised") for r in caplog.records)
+
+
+def test_a_worker_that_dies_leaves_the_registration_to_this_process(recording) -> None:
+    tracks, _ = recording
+    with BackwardRegistration(RunConfig()) as worker:
+        assert worker._proc is not None
+        worker._proc.kill()
+        worker._proc.join()
+        worker.submit(tracks)
+        result = worker.result()
+    assert not result.in_worker and len(result.poses) >= 10
+
+
+def test_no_worker_without_a_second_core_or_the_check(monkeypatch, recording) -> None:
+    tracks, _ = recording
+    off = RunConfig()
+    off.reverse.enabled = False
+    with BackwardRegistration(off) as worker:
+        assert worker._proc is None
+        worker.submit(tracks)  # nothing to do
+    monkeypatch.setattr(registration, "_cores", lambda: 1)
+    with BackwardRegistration(RunConfig()) as worker:
+        assert worker._proc is None
+        worker.submit(tracks)
+        assert len(worker.result().poses) >= 10
+
+
+def test_result_before_submit_is_a_programming_error() -> None:
+    with BackwardRegistration(RunConfig(), worker=False) as worker, pytest.raises(RuntimeError):
+        worker.result()
