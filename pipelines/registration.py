@@ -2,23 +2,25 @@
 second start of `mapping/reverse_start.py`) in a worker process beside it.
 
 gtsam's optimisers hold Python's GIL, so a thread would not run the backward registration beside the
-forward one; a process does, on a second core. The worker is spawned when the run starts (its
+forward one; a process does, on a second core. The worker is started when the run starts (its
 imports overlap the frontend), gets the tracks when the frontend has them, and is stopped when the
-run ends, whether or not its poses were used. Where no worker can run (one core, a daemonic process,
-a worker that died), the backward registration runs in the run's process when its poses are needed,
-with the same answer.
+run ends, whether or not its poses were used. Where no worker can run (one core, a worker that
+died), the backward registration runs in the run's process when its poses are needed, with the
+same answer.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import multiprocessing
 import os
-import signal
+import pickle
+import subprocess
+import sys
+import tempfile
+import threading
 import time
 from collections.abc import Callable
-from multiprocessing.connection import Connection
 from types import TracebackType
 
 import numpy as np
@@ -60,51 +62,74 @@ class BackwardResult:
 class BackwardRegistration:
     """The recording registered backwards, in a worker process from `submit` (the tracks as the
     frontend made them, before the forward registration renames any) to `result`. A context
-    manager: leaving it stops the worker."""
+    manager: leaving it stops the worker.
+
+    The worker is `python -m papl_mapper.pipelines.registration` with two pipes (pickles in, one
+    pickle out), not a multiprocessing child: those import the caller's main script again, which a
+    script without a main guard cannot survive."""
 
     def __init__(self, cfg: RunConfig, worker: bool = True) -> None:
         self._cfg = cfg
         self._tracks: Tracks | None = None
-        self._conn: Connection | None = None
-        self._proc: multiprocessing.process.BaseProcess | None = None
-        if worker and cfg.reverse.enabled and _cores() > 1 and not multiprocessing.current_process().daemon:
+        self._proc: subprocess.Popen | None = None
+        self._to_worker: int | None = None
+        self._from_worker: int | None = None
+        self._sender: threading.Thread | None = None
+        self._stderr = None
+        if worker and cfg.reverse.enabled and _cores() > 1:
+            r_in, w_in = os.pipe()
+            r_out, w_out = os.pipe()
             try:
-                ctx = multiprocessing.get_context("spawn")
-                self._conn, child = ctx.Pipe()
-                self._proc = ctx.Process(
-                    target=_work, args=(child, cfg), name="papl-map backward", daemon=True
+                self._stderr = tempfile.TemporaryFile()
+                self._proc = subprocess.Popen(
+                    [sys.executable, "-m", __name__, str(r_in), str(w_out)],
+                    pass_fds=(r_in, w_out),
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.DEVNULL,
+                    stderr=self._stderr,
+                    start_new_session=True,  # Ctrl-C is the run's to handle; leaving it stops the worker
                 )
-                self._proc.start()
-                child.close()
             except OSError as exc:
                 log.info("no worker process for the backward registration (%s): it runs in this one", exc)
-                self.close()
+                os.close(w_in)
+                os.close(r_out)
+            else:
+                self._to_worker, self._from_worker = w_in, r_out
+            finally:
+                os.close(r_in)
+                os.close(w_out)
 
     def submit(self, tracks: Tracks) -> None:
         """Start registering `tracks` backwards (in the worker, where there is one)."""
         if not self._cfg.reverse.enabled:
             return
         self._tracks = tracks.reversed()  # a copy: what the forward registration renames stays out
-        if self._conn is not None:
-            try:
-                self._conn.send(self._tracks)
-            except OSError:
-                self.close()
+        if self._to_worker is not None:
+            data = pickle.dumps((self._cfg, self._tracks), pickle.HIGHEST_PROTOCOL)
+            fd, self._to_worker = self._to_worker, None
+            self._sender = threading.Thread(target=_send, args=(fd, data), daemon=True)
+            self._sender.start()  # the worker may still be importing: do not wait for it here
 
     def result(self, progress: ProgressCallback | None = None) -> BackwardResult:
         """The backward keyframe poses; waits for the worker, or registers in this process (with
         `progress`) where it has none or it failed. `submit` first."""
         if self._tracks is None:
             raise RuntimeError("BackwardRegistration.result before submit")
-        if self._conn is not None:
+        if self._from_worker is not None:
+            fd, self._from_worker = self._from_worker, None
             try:
-                poses, seconds, records = self._conn.recv()
-            except (EOFError, OSError):
-                log.info("the backward registration's worker process ended early: it runs in this one")
+                with os.fdopen(fd, "rb") as fh:
+                    poses, seconds, records = pickle.load(fh)
+            except (EOFError, OSError, pickle.UnpicklingError, ValueError, TypeError):
+                log.info(
+                    "the backward registration's worker process ended early (%s): it runs in this one",
+                    self._worker_error(),
+                )
             else:
                 for name, level, message in records:
                     logging.getLogger(name).log(level, "backward registration: %s", message)
-                return BackwardResult(poses, seconds, True)
+                if poses is not None:
+                    return BackwardResult(poses, seconds, True)
             finally:
                 self.close()
         t0 = time.perf_counter()
@@ -113,14 +138,30 @@ class BackwardRegistration:
 
     def close(self) -> None:
         """Stop the worker (idempotent); `result` then registers in this process."""
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
         if self._proc is not None:
-            if self._proc.is_alive():
-                self._proc.terminate()
-            self._proc.join()
+            if self._proc.poll() is None:
+                self._proc.kill()
+            self._proc.wait()
             self._proc = None
+        for fd in (self._to_worker, self._from_worker):
+            if fd is not None:
+                os.close(fd)
+        self._to_worker = self._from_worker = None
+        if self._sender is not None:
+            self._sender.join()
+            self._sender = None
+        if self._stderr is not None:
+            self._stderr.close()
+            self._stderr = None
+
+    def _worker_error(self) -> str:
+        """The last line the worker wrote to stderr, or its exit status."""
+        if self._proc is None or self._stderr is None:
+            return "no worker"
+        code = self._proc.wait()
+        self._stderr.seek(0)
+        lines = [ln.strip() for ln in self._stderr.read().decode(errors="replace").splitlines() if ln.strip()]
+        return lines[-1] if lines else f"exit status {code}"
 
     def __enter__(self) -> BackwardRegistration:
         return self
@@ -129,6 +170,15 @@ class BackwardRegistration:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+
+def _send(fd: int, data: bytes) -> None:
+    """Write `data` into the pipe `fd` and close it (a worker that died has closed its end)."""
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+    except OSError:
+        pass
 
 
 def _cores() -> int:
@@ -153,18 +203,24 @@ class _Records(logging.Handler):
         self.records.append((record.name, record.levelno, record.getMessage()))
 
 
-def _work(conn: Connection, cfg: RunConfig) -> None:
-    """The worker process: one set of reversed tracks in, (poses, seconds, log records) out."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle; it stops the worker
+def _work(fd_in: int, fd_out: int) -> None:
+    """The worker process: (config, reversed tracks) in, (poses, seconds, log records) out; poses
+    None where the registration raised (the run's process then raises it again itself)."""
     handler = _Records()
     root = logging.getLogger("papl_mapper")
     root.addHandler(handler)
     root.setLevel(logging.DEBUG)
-    try:
-        tracks = conn.recv()
-    except EOFError:
-        return
+    with os.fdopen(fd_in, "rb") as fh:
+        cfg, tracks = pickle.load(fh)
     t0 = time.perf_counter()
-    poses = _backward(tracks, cfg, None)
-    conn.send((poses, time.perf_counter() - t0, handler.records))
-    conn.close()
+    try:
+        poses = _backward(tracks, cfg, None)
+    except Exception:  # noqa: BLE001 - reported through the pipe, raised again in the run's process
+        log.debug("the backward registration failed in the worker", exc_info=True)
+        poses = None
+    with os.fdopen(fd_out, "wb") as fh:
+        pickle.dump((poses, time.perf_counter() - t0, handler.records), fh, pickle.HIGHEST_PROTOCOL)
+
+
+if __name__ == "__main__":
+    _work(int(sys.argv[1]), int(sys.argv[2]))

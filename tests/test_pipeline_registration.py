@@ -4,6 +4,10 @@ run's process, and a worker that dies or cannot run costs nothing but time."""
 from __future__ import annotations
 
 import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -60,7 +64,7 @@ def test_a_worker_that_dies_leaves_the_registration_to_this_process(recording) -
     with BackwardRegistration(RunConfig()) as worker:
         assert worker._proc is not None
         worker._proc.kill()
-        worker._proc.join()
+        worker._proc.wait()
         worker.submit(tracks)
         result = worker.result()
     assert not result.in_worker and len(result.poses) >= 10
@@ -83,3 +87,31 @@ def test_no_worker_without_a_second_core_or_the_check(monkeypatch, recording) ->
 def test_result_before_submit_is_a_programming_error() -> None:
     with BackwardRegistration(RunConfig(), worker=False) as worker, pytest.raises(RuntimeError):
         worker.result()
+
+
+def test_the_worker_runs_under_a_script_without_a_main_guard(tmp_path) -> None:
+    """The worker does not import the caller's main script again (as multiprocessing's children do)."""
+    script = tmp_path / "script.py"
+    script.write_text(
+        "from papl_mapper.pipelines.config import RunConfig\n"
+        "from papl_mapper.pipelines.registration import BackwardRegistration\n"
+        "from tests.test_mapping_incremental import make_tracks\n"
+        "tracks, _, _ = make_tracks(n_frames=30, noise_px=0.3)\n"
+        "with BackwardRegistration(RunConfig()) as worker:\n"
+        "    worker.submit(tracks)\n"
+        "    result = worker.result()\n"
+        "print(result.in_worker, len(result.poses))\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        cwd=root,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(root)},
+    )
+    assert out.returncode == 0, out.stderr
+    in_worker, n = out.stdout.split()
+    assert in_worker == "True" and int(n) >= 10
+    assert "Error" not in out.stderr
