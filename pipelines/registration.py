@@ -11,7 +11,9 @@ same answer.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import logging
 import os
 import pickle
@@ -22,9 +24,13 @@ import threading
 import time
 from collections.abc import Callable
 from types import TracebackType
+from typing import Any, BinaryIO
 
 import numpy as np
 
+from papl_mapper.backend import BAConfig, global_ba
+from papl_mapper.errors import GeometryError, OptimizationError
+from papl_mapper.map import Map
 from papl_mapper.mapping.incremental import Registration, register_keyframes
 from papl_mapper.mapping.reverse_start import backward_poses
 from papl_mapper.mapping.windowed import WindowedRefiner
@@ -61,21 +67,22 @@ class BackwardResult:
 
 class BackwardRegistration:
     """The recording registered backwards, in a worker process from `submit` (the tracks as the
-    frontend made them, before the forward registration renames any) to `result`. A context
-    manager: leaving it stops the worker.
+    frontend made them, before the forward registration renames any) to `result`; then, on request
+    (`ba_aside`), the global BA of the backward start beside the forward start's. A context manager:
+    leaving it stops the worker.
 
-    The worker is `python -m papl_mapper.pipelines.registration` with two pipes (pickles in, one
-    pickle out), not a multiprocessing child: those import the caller's main script again, which a
-    script without a main guard cannot survive."""
+    The worker is `python -m papl_mapper.pipelines.registration` with two pipes (pickles each way),
+    not a multiprocessing child: those import the caller's main script again, which a script without
+    a main guard cannot survive."""
 
     def __init__(self, cfg: RunConfig, worker: bool = True) -> None:
         self._cfg = cfg
         self._tracks: Tracks | None = None
         self._proc: subprocess.Popen | None = None
-        self._to_worker: int | None = None
-        self._from_worker: int | None = None
+        self._send: BinaryIO | None = None
+        self._recv: BinaryIO | None = None
         self._sender: threading.Thread | None = None
-        self._stderr = None
+        self._stderr: BinaryIO | None = None
         if worker and cfg.reverse.enabled and _cores() > 1:
             r_in, w_in = os.pipe()
             r_out, w_out = os.pipe()
@@ -94,7 +101,7 @@ class BackwardRegistration:
                 os.close(w_in)
                 os.close(r_out)
             else:
-                self._to_worker, self._from_worker = w_in, r_out
+                self._send, self._recv = os.fdopen(w_in, "wb"), os.fdopen(r_out, "rb")
             finally:
                 os.close(r_in)
                 os.close(w_out)
@@ -104,10 +111,9 @@ class BackwardRegistration:
         if not self._cfg.reverse.enabled:
             return
         self._tracks = tracks.reversed()  # a copy: what the forward registration renames stays out
-        if self._to_worker is not None:
+        if self._send is not None:
             data = pickle.dumps((self._cfg, self._tracks), pickle.HIGHEST_PROTOCOL)
-            fd, self._to_worker = self._to_worker, None
-            self._sender = threading.Thread(target=_send, args=(fd, data), daemon=True)
+            self._sender = threading.Thread(target=self._write, args=(data,), daemon=True)
             self._sender.start()  # the worker may still be importing: do not wait for it here
 
     def result(self, progress: ProgressCallback | None = None) -> BackwardResult:
@@ -115,41 +121,82 @@ class BackwardRegistration:
         `progress`) where it has none or it failed. `submit` first."""
         if self._tracks is None:
             raise RuntimeError("BackwardRegistration.result before submit")
-        if self._from_worker is not None:
-            fd, self._from_worker = self._from_worker, None
-            try:
-                with os.fdopen(fd, "rb") as fh:
-                    poses, seconds, records = pickle.load(fh)
-            except (EOFError, OSError, pickle.UnpicklingError, ValueError, TypeError):
-                log.info(
-                    "the backward registration's worker process ended early (%s): it runs in this one",
-                    self._worker_error(),
-                )
-            else:
-                for name, level, message in records:
-                    logging.getLogger(name).log(level, "backward registration: %s", message)
-                if poses is not None:
-                    return BackwardResult(poses, seconds, True)
-            finally:
-                self.close()
+        if self._recv is not None:
+            reply = self._reply()
+            if reply is not None and reply[0] is not None:
+                poses, seconds = reply
+                return BackwardResult(poses, seconds, True)
+            self.close()
         t0 = time.perf_counter()
         poses = _backward(self._tracks, self._cfg, progress)
         return BackwardResult(poses, time.perf_counter() - t0, False)
 
+    def ba_aside(self, m: Map, ba: BAConfig) -> Callable[[], Map]:
+        """Start the global BA of `m` in the worker (after `result`); what it returns waits for the
+        adjusted map. Without a worker the BA runs in this process when waited for. A
+        GeometryError or OptimizationError of the BA is raised by the wait, as `global_ba` would."""
+        if self._sender is not None:
+            self._sender.join()  # the tracks are through: the pipe is free
+            self._sender = None
+        if self._send is not None and self._recv is not None:
+            try:
+                self._send.write(pickle.dumps((m, ba), pickle.HIGHEST_PROTOCOL))
+                self._send.flush()
+            except OSError:
+                self.close()
+            else:
+                return functools.partial(self._adjusted, m, ba)
+        return lambda: global_ba(m, ba).map
+
+    def _adjusted(self, m: Map, ba: BAConfig) -> Map:
+        reply = self._reply()
+        if reply is not None and isinstance(reply[0], (GeometryError, OptimizationError)):
+            raise reply[0]
+        if reply is not None and isinstance(reply[0], Map):
+            return reply[0]
+        self.close()
+        return global_ba(m, ba).map
+
+    def _reply(self) -> tuple[Any, float] | None:
+        """The worker's next (answer, seconds), its log records logged here; None when it ended."""
+        assert self._recv is not None
+        try:
+            answer, seconds, records = pickle.load(self._recv)
+        except (EOFError, OSError, pickle.UnpicklingError, ValueError, TypeError, AttributeError):
+            log.info(
+                "the backward registration's worker process ended early (%s): this process goes on alone",
+                self._worker_error(),
+            )
+            self.close()
+            return None
+        for name, level, message in records:
+            logging.getLogger(name).log(level, "backward registration: %s", message)
+        return answer, seconds
+
+    def _write(self, data: bytes) -> None:
+        """Send `data` to the worker (from the sender thread; a worker that died has closed its end)."""
+        try:
+            assert self._send is not None
+            self._send.write(data)
+            self._send.flush()
+        except (OSError, ValueError, AssertionError):
+            pass
+
     def close(self) -> None:
-        """Stop the worker (idempotent); `result` then registers in this process."""
+        """Stop the worker (idempotent); the registration and the BA then run in this process."""
         if self._proc is not None:
             if self._proc.poll() is None:
                 self._proc.kill()
             self._proc.wait()
             self._proc = None
-        for fd in (self._to_worker, self._from_worker):
-            if fd is not None:
-                os.close(fd)
-        self._to_worker = self._from_worker = None
         if self._sender is not None:
-            self._sender.join()
+            self._sender.join()  # the worker's end is closed: the write has returned
             self._sender = None
+        for fh in (self._send, self._recv):
+            if fh is not None:
+                with contextlib.suppress(OSError):
+                    fh.close()
+        self._send = self._recv = None
         if self._stderr is not None:
             self._stderr.close()
             self._stderr = None
@@ -158,6 +205,8 @@ class BackwardRegistration:
         """The last line the worker wrote to stderr, or its exit status."""
         if self._proc is None or self._stderr is None:
             return "no worker"
+        if self._proc.poll() is None:
+            self._proc.kill()
         code = self._proc.wait()
         self._stderr.seek(0)
         lines = [ln.strip() for ln in self._stderr.read().decode(errors="replace").splitlines() if ln.strip()]
@@ -170,15 +219,6 @@ class BackwardRegistration:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
-
-
-def _send(fd: int, data: bytes) -> None:
-    """Write `data` into the pipe `fd` and close it (a worker that died has closed its end)."""
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-    except OSError:
-        pass
 
 
 def _cores() -> int:
@@ -204,22 +244,43 @@ class _Records(logging.Handler):
 
 
 def _work(fd_in: int, fd_out: int) -> None:
-    """The worker process: (config, reversed tracks) in, (poses, seconds, log records) out; poses
-    None where the registration raised (the run's process then raises it again itself)."""
+    """The worker process. First (config, reversed tracks) in, (poses, seconds, log records) out, the
+    poses None where the registration raised (the run's process then raises it again itself); then,
+    until the run closes the pipe, (map, BA config) in, (adjusted map, seconds, log records) out, the
+    map a GeometryError or OptimizationError where the BA raised one, None where it raised another."""
     handler = _Records()
     root = logging.getLogger("papl_mapper")
     root.addHandler(handler)
     root.setLevel(logging.DEBUG)
-    with os.fdopen(fd_in, "rb") as fh:
-        cfg, tracks = pickle.load(fh)
-    t0 = time.perf_counter()
-    try:
-        poses = _backward(tracks, cfg, None)
-    except Exception:  # noqa: BLE001 - reported through the pipe, raised again in the run's process
-        log.debug("the backward registration failed in the worker", exc_info=True)
-        poses = None
-    with os.fdopen(fd_out, "wb") as fh:
-        pickle.dump((poses, time.perf_counter() - t0, handler.records), fh, pickle.HIGHEST_PROTOCOL)
+    with os.fdopen(fd_in, "rb") as fin, os.fdopen(fd_out, "wb") as fout:
+
+        def reply(answer: Any, t0: float) -> None:
+            pickle.dump((answer, time.perf_counter() - t0, handler.records), fout, pickle.HIGHEST_PROTOCOL)
+            fout.flush()
+            handler.records = []
+
+        cfg, tracks = pickle.load(fin)
+        t0 = time.perf_counter()
+        try:
+            poses = _backward(tracks, cfg, None)
+        except Exception:  # noqa: BLE001 - reported through the pipe, raised again in the run's process
+            log.debug("the backward registration failed in the worker", exc_info=True)
+            poses = None
+        reply(poses, t0)
+        while True:
+            try:
+                m, ba = pickle.load(fin)
+            except EOFError:
+                return
+            t0 = time.perf_counter()
+            try:
+                answer: Any = global_ba(m, ba).map
+            except (GeometryError, OptimizationError) as exc:
+                answer = exc
+            except Exception:  # noqa: BLE001 - the run's process runs the BA again itself
+                log.debug("the BA failed in the worker", exc_info=True)
+                answer = None
+            reply(answer, t0)
 
 
 if __name__ == "__main__":

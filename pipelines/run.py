@@ -540,6 +540,7 @@ def _points_ba(
                     cfg.max_point_error_px,
                     cfg.reverse,
                     lambda i, n, c: cb(i, n, f"cost {c:.6g}"),
+                    backward.ba_aside,
                 )
             stats.reverse_check = reverse.as_dict() | back.summary()
         if reverse.kept == "backward":

@@ -115,3 +115,40 @@ def test_the_worker_runs_under_a_script_without_a_main_guard(tmp_path) -> None:
     in_worker, n = out.stdout.split()
     assert in_worker == "True" and int(n) >= 10
     assert "Error" not in out.stderr
+
+
+def test_the_backward_start_is_adjusted_in_the_worker_as_here(recording) -> None:
+    tracks, truth = recording
+    from papl_mapper.backend import BAConfig, global_ba
+    from tests.test_reverse_start import FRAMES, _adjusted_map
+
+    m = _adjusted_map(tracks, truth[FRAMES])
+    ba = BAConfig(max_iterations=5)
+    with BackwardRegistration(RunConfig()) as worker:
+        worker.submit(tracks)
+        assert worker.result().in_worker
+        wait = worker.ba_aside(m, ba)
+        assert worker._proc is not None and worker._proc.poll() is None
+        there = wait()
+    here = global_ba(m, ba).map
+    assert np.array_equal(there.keyframes.T_wc, here.keyframes.T_wc)
+    assert np.array_equal(there.points.xyz, here.points.xyz)
+
+
+def test_a_ba_that_fails_in_the_worker_fails_here_too(recording) -> None:
+    """An error other than the BA's own (here the map check's) makes the run's process run it again,
+    which raises it where the caller sees it."""
+    from papl_mapper.backend import BAConfig
+    from papl_mapper.errors import MapFormatError
+    from tests.test_reverse_start import FRAMES, _adjusted_map
+
+    tracks, truth = recording
+    m = _adjusted_map(tracks, truth[FRAMES])
+    m.points.xyz[:] = np.nan
+    with BackwardRegistration(RunConfig()) as worker:
+        worker.submit(tracks)
+        worker.result()
+        wait = worker.ba_aside(m, BAConfig(max_iterations=5))
+        with pytest.raises(MapFormatError):
+            wait()
+        assert worker._proc is None  # stopped: what follows runs here

@@ -114,6 +114,10 @@ def _track_maps(tracks: Tracks, frames: np.ndarray, starts: list[np.ndarray]) ->
     return maps
 
 
+BAAside = Callable[[Map, BAConfig], Callable[[], Map]]
+"""Starts a global BA of a map elsewhere (another process) and returns what waits for the adjusted map."""
+
+
 def reverse_checked(
     m: Map,
     tracks: Tracks,
@@ -122,12 +126,14 @@ def reverse_checked(
     max_error_px: float,
     cfg: ReverseCheckConfig | None = None,
     progress: ProgressFn | None = None,
+    aside: BAAside | None = None,
 ) -> tuple[Map, ReverseCheck]:
     """`m` (a points map after its global BA) against the keyframe poses of the backward registration
     (`backward`, T_wc by frame row): both start a points BA over every observation of the tracks at
     m's keyframes (outliers culled first); where the backward one's poses fit the tracks significantly
     better (`cfg.significance`), the map that BA made, else `m`. Taken whole, not as poses for m's points: the
-    observations the forward registration kept were chosen by agreeing with the poses that lost."""
+    observations the forward registration kept were chosen by agreeing with the poses that lost.
+    `aside`: runs the backward start's BA beside the forward one's (else one after the other)."""
     cfg = cfg or ReverseCheckConfig()
     frames = m.keyframes.ids
     check = ReverseCheck(keyframes=len(frames), posed_backward=int(sum(int(f) in backward for f in frames)))
@@ -135,11 +141,13 @@ def reverse_checked(
         return m, check  # the backward map does not hold every keyframe: no common problem to judge on
     T_back = np.stack([backward[int(f)] for f in frames])
     T_back = umeyama(T_back[:, :3, 3], m.keyframes.T_wc[:, :3, 3]).apply_poses(T_back)  # into m's frame
-    ends = []
     try:
-        for start in _track_maps(tracks, frames, [m.keyframes.T_wc, T_back]):
+        starts = _track_maps(tracks, frames, [m.keyframes.T_wc, T_back])
+        for start in starts:
             cull_observations(start, max_error_px, max_error_px, ba.min_views, 1)
-            ends.append(global_ba(start, ba, progress).map)
+        wait_backward = aside(starts[1], ba) if aside is not None else None
+        ends = [global_ba(starts[0], ba, progress).map]
+        ends.append(wait_backward() if wait_backward is not None else global_ba(starts[1], ba, progress).map)
     except (GeometryError, OptimizationError) as exc:
         log.info("backward registration: its BA failed (%s); the forward map kept", exc)
         return m, check
