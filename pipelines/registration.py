@@ -83,7 +83,7 @@ class BackwardRegistration:
         self._recv: BinaryIO | None = None
         self._sender: threading.Thread | None = None
         self._stderr: BinaryIO | None = None
-        if worker and cfg.reverse.enabled and _cores() > 1:
+        if worker and cfg.reverse.enabled and cfg.reverse.worker and _cores() > 1:
             r_in, w_in = os.pipe()
             r_out, w_out = os.pipe()
             try:

@@ -70,13 +70,17 @@ def test_a_worker_that_dies_leaves_the_registration_to_this_process(recording) -
     assert not result.in_worker and len(result.poses) >= 10
 
 
-def test_no_worker_without_a_second_core_or_the_check(monkeypatch, recording) -> None:
+def test_no_worker_without_a_second_core_or_the_check_or_when_told(monkeypatch, recording) -> None:
     tracks, _ = recording
     off = RunConfig()
     off.reverse.enabled = False
     with BackwardRegistration(off) as worker:
         assert worker._proc is None
         worker.submit(tracks)  # nothing to do
+    alone = RunConfig()
+    alone.reverse.worker = False  # as papl-map batch sets it for a recording given one thread
+    with BackwardRegistration(alone) as worker:
+        assert worker._proc is None
     monkeypatch.setattr(registration, "_cores", lambda: 1)
     with BackwardRegistration(RunConfig()) as worker:
         assert worker._proc is None
