@@ -1,10 +1,12 @@
 """`papl-map run`: one recording to one anchored line map, as a short recipe over the stages.
 
 frontend (tracks) -> keyframe registration with windowed BA -> points-only global BA -> rotation
-check (a second BA from averaged rotations where the first one's miss the pairwise ones) -> track
-completion, merging and retriangulation, and the points BA again -> line triangulation (temporary-VP
-stage) -> upright rotation, axes and soft association -> full global BA over
-points, anchored and orthonormal lines -> axis update and a second BA -> every frame's pose.
+check (a second BA from averaged rotations where the first one's miss the pairwise ones) -> reverse
+check (the recording registered backwards, in a worker process beside the forward registration,
+`pipelines/registration.py`: a second start where the tracks favour it) -> track completion,
+merging and retriangulation, and the points BA again -> line triangulation (temporary-VP stage) ->
+upright rotation, axes and soft association -> full global BA over points, anchored and orthonormal
+lines -> axis update and a second BA -> every frame's pose.
 The frontend, registration, points BA and full BA are checkpointed in OUT/.checkpoint (see
 `pipelines/checkpoint.py`), so `--resume` after an interruption continues after the latest of them.
 `run` also owns the output folder: the checks before work, the outputs, log.txt, the extras and the
