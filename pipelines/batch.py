@@ -431,8 +431,6 @@ def run_job(spec: dict[str, Any]) -> Row:
         with thread_limits(job.threads):
             cfg = job.config()
             key, row["probe"] = _key_of(job, cfg)
-            if job.threads < 2:  # one core for this recording: no second process beside it
-                cfg = dataclasses.replace(cfg, reverse=dataclasses.replace(cfg.reverse, worker=False))
             stage = "mapping"
             result = run(job.recording, out, cfg, resume=job.resume)  # writes the extras and log.txt too
         row.update(_result_fields(result.summary.to_dict(), out))

@@ -26,6 +26,7 @@ from collections.abc import Callable
 from types import TracebackType
 from typing import Any, BinaryIO
 
+import cv2
 import numpy as np
 
 from papl_mapper.backend import BAConfig, global_ba
@@ -222,8 +223,10 @@ class BackwardRegistration:
 
 
 def _cores() -> int:
-    """The cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    """The cores this process may use: its CPU affinity, and OpenCV's thread count, which a caller that
+    gives the job fewer threads limits (`papl-map batch --threads`, `pipelines.batch.thread_limits`)."""
+    affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return min(affinity, max(1, cv2.getNumThreads()))
 
 
 def _backward(

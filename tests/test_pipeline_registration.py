@@ -15,6 +15,7 @@ import pytest
 from papl_mapper.geometry.se3 import invert
 from papl_mapper.geometry.similarity import umeyama
 from papl_mapper.pipelines import registration
+from papl_mapper.pipelines.batch import thread_limits
 from papl_mapper.pipelines.config import RunConfig
 from papl_mapper.pipelines.registration import BackwardRegistration
 from tests.test_mapping_incremental import make_tracks
@@ -78,8 +79,10 @@ def test_no_worker_without_a_second_core_or_the_check_or_when_told(monkeypatch, 
         assert worker._proc is None
         worker.submit(tracks)  # nothing to do
     alone = RunConfig()
-    alone.reverse.worker = False  # as papl-map batch sets it for a recording given one thread
+    alone.reverse.worker = False
     with BackwardRegistration(alone) as worker:
+        assert worker._proc is None
+    with thread_limits(1), BackwardRegistration(RunConfig()) as worker:  # papl-map batch --threads 1
         assert worker._proc is None
     monkeypatch.setattr(registration, "_cores", lambda: 1)
     with BackwardRegistration(RunConfig()) as worker:

@@ -179,13 +179,14 @@ def test_a_partial_map_is_warned_about(caplog):
 def test_windowed_ba_runs_to_its_own_tolerance(tmp_path, monkeypatch):
     """Registration's windowed BAs get `local_ba_relative_error_tol`, the global BAs keep
     `ba.relative_error_tol` (both set here to values no default has)."""
+    import papl_mapper.pipelines.registration as registration
     import papl_mapper.pipelines.run as run_module
 
     if not (TINY / "video.mp4").exists():
         pytest.skip("samples/tiny is not there")
     seen = {"local": set(), "global": set()}
 
-    class Recording(run_module.WindowedRefiner):
+    class Recording(registration.WindowedRefiner):
         def __init__(self, tracks, ba, *args, **kwargs):
             seen["local"].add(ba.relative_error_tol)
             super().__init__(tracks, ba, *args, **kwargs)
@@ -196,7 +197,7 @@ def test_windowed_ba_runs_to_its_own_tolerance(tmp_path, monkeypatch):
         seen["global"].add(config.relative_error_tol)
         return real_adjust(m, config, *args, **kwargs)
 
-    monkeypatch.setattr(run_module, "WindowedRefiner", Recording)
+    monkeypatch.setattr(registration, "WindowedRefiner", Recording)
     monkeypatch.setattr(run_module, "adjust", recording_adjust)
     args = ["-q", "run", str(TINY / "video.mp4"), "--camera", str(TINY / "camera.json")]
     args += ["--out", str(tmp_path), "--set", "local_ba_relative_error_tol=3e-5"]

@@ -23,7 +23,7 @@ import pytest
 
 import papl_mapper.mapping.adjust as adjust
 import papl_mapper.mapping.structure as structure
-import papl_mapper.pipelines.run as pipeline
+import papl_mapper.pipelines.registration as registration
 import papl_mapper.pipelines.run_outputs as run_outputs
 from papl_mapper.cli import main
 from papl_mapper.map import Map
@@ -126,7 +126,7 @@ def _break_ba(mp: pytest.MonkeyPatch) -> None:
 # interrupted stage: (what to break, checkpoints there before, the checkpoint a resume continues from);
 # each run starts from the checkpoint just before the stage it interrupts
 CASES = {
-    "registration": (lambda mp: mp.setattr(pipeline, "register_keyframes", _Boom(None)), 1, "frontend"),
+    "registration": (lambda mp: mp.setattr(registration, "register_keyframes", _Boom(None)), 1, "frontend"),
     "ba_points": (_break_ba, 2, "registration"),
     "ba_full": (_break_ba, 3, "ba_points"),
     "axis_update": (

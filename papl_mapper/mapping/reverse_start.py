@@ -46,9 +46,9 @@ class ReverseCheckConfig:
     """Register the recording backwards too, and start the global BA from those keyframe poses where
     they fit every observation of the tracks better (costs about one more registration)."""
     worker: bool = True
-    """Register backwards in a worker process on a second core, beside the forward registration (where
-    the machine has one; the answer is the same). `papl-map batch` turns it off for recordings given
-    one thread (`--threads 1`, and on Ray)."""
+    """Register backwards in a worker process on a second core, beside the forward registration (the
+    answer is the same). Only where the job may use two cores: its CPU affinity, and OpenCV's thread
+    count where the caller limited it (`papl-map batch --threads 1`, and on Ray)."""
     significance: float = 3.0
     """The backward poses are taken when the tracks' cost differences favour them by more than this
     many standard errors (a paired test over the tracks: the observations of one track share its
