@@ -276,6 +276,7 @@ def _section_summary(run: RunFolder, s: dict[str, Any]) -> str:
     revisits = _get(run.summary, "revisits")
     if isinstance(revisits, list):
         rows.append(("revisits (loops closed)", _num(len(revisits))))
+    rows += _start_checks(run.summary)
     out = "".join(f"<p class='note'><b>Warning:</b> {_e(w)}</p>" for w in run_warnings(run.summary))
     out += "<h2>Summary</h2>" + _table(rows)
     # lines per axis and the axes
@@ -316,6 +317,38 @@ def _section_summary(run: RunFolder, s: dict[str, Any]) -> str:
         )
         out += f"<p>Angles between the axes:</p><table><tr><th></th>{head}</tr>{body}</table>"
     return out
+
+
+def _start_checks(summary: dict[str, Any] | None) -> list[tuple[str, str]]:
+    """Rows saying which start the global BA kept: the rotation check's and the backward registration's."""
+    rows = []
+    rot = _get(summary, "rotation_check")
+    if isinstance(rot, dict) and rot.get("pairs"):
+        said = (
+            f"median pair missed by {rot.get('residual_ba_deg', 0):.3f}° (BA) and "
+            f"{rot.get('residual_averaged_deg', 0):.3f}° (averaged rotations)"
+        )
+        if rot.get("second_start"):
+            said += f"; a second BA from the averaged rotations ran, the {rot.get('kept')} start kept"
+        rows.append(("rotation check", _e(said)))
+    rev = _get(summary, "reverse_check")
+    if isinstance(rev, dict):
+        where = " in a worker process" if rev.get("in_worker") else ""
+        took = (
+            f" ({rev['registration_s']:.1f} s{where})" if isinstance(rev.get("registration_s"), float) else ""
+        )
+        if rev.get("z") is None:
+            said = (
+                f"registered backwards{took}: {_num(rev.get('posed_backward'))} of the "
+                f"{_num(rev.get('keyframes'))} keyframes posed, not compared"
+            )
+        else:
+            said = (
+                f"registered backwards{took}: {rev.get('kept')} poses kept (paired test over the tracks: "
+                f"z {rev['z']:.1f}, negative favours the backward poses)"
+            )
+        rows.append(("second start", _e(said)))
+    return rows
 
 
 def _section_ba(summary: dict[str, Any] | None) -> str:

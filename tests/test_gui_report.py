@@ -355,3 +355,45 @@ def test_report_names_the_segments_mapped_apart_from_the_map():
     assert w.startswith("Frames 0-103 could not be joined to this map")
     assert "segments/000000-000103/ (103 frames posed, 1434 points, 25 lines)" in w
     assert run_warnings({"segment_maps": []}) == []
+
+
+def test_the_summary_says_which_start_the_global_ba_kept() -> None:
+    from papl_mapper.gui.report import _start_checks
+
+    summary = {
+        "rotation_check": {
+            "pairs": 40,
+            "residual_ba_deg": 0.41,
+            "residual_averaged_deg": 0.05,
+            "second_start": True,
+            "kept": "averaged",
+        },
+        "reverse_check": {
+            "keyframes": 20,
+            "posed_backward": 20,
+            "z": -12.26,
+            "kept": "backward",
+            "registration_s": 6.4,
+            "in_worker": True,
+        },
+    }
+    rows = dict(_start_checks(summary))
+    assert (
+        "0.410° (BA) and 0.050°" in rows["rotation check"] and "averaged start kept" in rows["rotation check"]
+    )
+    assert rows["second start"] == (
+        "registered backwards (6.4 s in a worker process): backward poses kept (paired test over the "
+        "tracks: z -12.3, negative favours the backward poses)"
+    )
+    summary["reverse_check"] = {
+        "keyframes": 20,
+        "posed_backward": 12,
+        "z": None,
+        "kept": "forward",
+        "registration_s": 1.5,
+        "in_worker": False,
+    }
+    assert dict(_start_checks(summary))["second start"] == (
+        "registered backwards (1.5 s): 12 of the 20 keyframes posed, not compared"
+    )
+    assert _start_checks({}) == [] and _start_checks(None) == []
