@@ -170,8 +170,7 @@ class BackwardRegistration:
             )
             self.close()
             return None
-        for name, level, message in records:
-            logging.getLogger(name).log(level, "backward registration: %s", message)
+        _relog(records)
         return answer, seconds
 
     def _write(self, data: bytes) -> None:
@@ -233,6 +232,13 @@ def _backward(
     reversed_tracks: Tracks, cfg: RunConfig, progress: ProgressCallback | None
 ) -> dict[int, np.ndarray]:
     return backward_poses(reversed_tracks, lambda t: register_tracks(t, cfg, progress))
+
+
+def _relog(records: list[tuple[str, int, str]]) -> None:
+    """Log the worker's records here, prefixed; its warnings as INFO: they are about the second
+    start (a segment the backward registration left out), not about the map the run writes."""
+    for name, level, message in records:
+        logging.getLogger(name).log(min(level, logging.INFO), "backward registration: %s", message)
 
 
 class _Records(logging.Handler):

@@ -159,3 +159,21 @@ def test_a_ba_that_fails_in_the_worker_fails_here_too(recording) -> None:
         with pytest.raises(MapFormatError):
             wait()
         assert worker._proc is None  # stopped: what follows runs here
+
+
+def test_the_workers_warnings_are_logged_as_information(caplog) -> None:
+    with caplog.at_level(logging.DEBUG, logger="papl_mapper"):
+        registration._relog(
+            [
+                (
+                    "papl_mapper.mapping.incremental",
+                    logging.WARNING,
+                    "tracking segment of frames 7-9 left out",
+                ),
+                ("papl_mapper.mapping.incremental", logging.DEBUG, "detail"),
+            ]
+        )
+    assert [(r.levelno, r.getMessage()) for r in caplog.records] == [
+        (logging.INFO, "backward registration: tracking segment of frames 7-9 left out"),
+        (logging.DEBUG, "backward registration: detail"),
+    ]
