@@ -12,11 +12,13 @@ same answer.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import functools
 import logging
 import os
 import pickle
+import signal
 import subprocess
 import sys
 import tempfile
@@ -41,6 +43,7 @@ from papl_mapper.tracks import Tracks
 log = logging.getLogger(__name__)
 
 ProgressCallback = Callable[[int, int, str], None]
+_PR_SET_PDEATHSIG = 1  # prctl(2)
 
 
 def register_tracks(tracks: Tracks, cfg: RunConfig, progress: ProgressCallback | None) -> Registration:
@@ -234,6 +237,15 @@ def _backward(
     return backward_poses(reversed_tracks, lambda t: register_tracks(t, cfg, progress))
 
 
+def _die_with_parent() -> None:
+    """Have Linux kill this worker when the run's process ends (killed, out of memory), instead of it
+    finishing a registration nobody waits for; elsewhere it ends at its next write or read."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() == 1:  # the run ended before that took effect
+        os._exit(0)
+
+
 def _relog(records: list[tuple[str, int, str]]) -> None:
     """Log the worker's records here, prefixed; its warnings as INFO: they are about the second
     start (a segment the backward registration left out), not about the map the run writes."""
@@ -257,6 +269,7 @@ def _work(fd_in: int, fd_out: int) -> None:
     poses None where the registration raised (the run's process then raises it again itself); then,
     until the run closes the pipe, (map, BA config) in, (adjusted map, seconds, log records) out, the
     map a GeometryError or OptimizationError where the BA raised one, None where it raised another."""
+    _die_with_parent()
     handler = _Records()
     root = logging.getLogger("papl_mapper")
     root.addHandler(handler)

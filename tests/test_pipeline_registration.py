@@ -7,6 +7,7 @@ import logging
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -177,3 +178,41 @@ def test_the_workers_warnings_are_logged_as_information(caplog) -> None:
         (logging.INFO, "backward registration: tracking segment of frames 7-9 left out"),
         (logging.DEBUG, "backward registration: detail"),
     ]
+
+
+def test_the_worker_ends_with_the_run_that_started_it(tmp_path) -> None:
+    """A run's process that dies (killed, out of memory) takes its worker with it."""
+    script = tmp_path / "dies.py"
+    script.write_text(
+        "import os, sys, time\n"
+        "from papl_mapper.pipelines.config import RunConfig\n"
+        "from papl_mapper.pipelines.registration import BackwardRegistration\n"
+        "from tests.test_mapping_incremental import make_tracks\n"
+        "tracks, _, _ = make_tracks(n_frames=150, noise_px=0.3)\n"
+        "worker = BackwardRegistration(RunConfig())\n"
+        "worker.submit(tracks)\n"
+        "time.sleep(1.5)  # the worker is registering (about 4 s): it does not wait for a read or write\n"
+        "print(worker._proc.pid, flush=True)\n"
+        "os._exit(0)\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        cwd=root,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(root)},
+    )
+    pid = int(out.stdout.split()[0])
+    for _ in range(20):  # within a second, not when its registration is done
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return
+        with open(f"/proc/{pid}/stat") as fh:  # a zombie until reaped by init: it has ended
+            if fh.read().split()[2] == "Z":
+                return
+        time.sleep(0.05)
+    os.kill(pid, 9)
+    raise AssertionError("the worker outlived the run's process")
