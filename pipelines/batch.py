@@ -551,15 +551,21 @@ def finished(job: Job) -> Row | None:
 
 
 def _rss(pid: int) -> int:
-    """Resident memory of a process in bytes (0 when it cannot be read)."""
+    """Resident memory of a process and its child processes (a run's backward-registration worker) in
+    bytes; 0 for what cannot be read."""
+    total = 0
     try:
         with open(f"/proc/{pid}/status") as fh:
             for line in fh:
                 if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024
+                    total = int(line.split()[1]) * 1024
+                    break
     except (OSError, ValueError):
-        pass
-    return 0
+        return 0
+    for children in Path(f"/proc/{pid}/task").glob("*/children"):
+        with contextlib.suppress(OSError, ValueError):
+            total += sum(_rss(int(child)) for child in children.read_text().split())
+    return total
 
 
 def _last_line(path: Path) -> str:

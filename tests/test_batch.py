@@ -367,3 +367,30 @@ def test_names_are_unique_and_stable(tmp_path):
         bad = tmp_path / "n.csv"
         bad.write_text(f"path,name\n{TINY / 'video.mp4'},..\n")
         collect([bad])
+
+
+def test_a_jobs_memory_counts_its_child_processes() -> None:
+    """--memory-limit watches the job with the worker process its run starts beside it."""
+    from papl_mapper.pipelines.batch import _rss
+
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import sys; b = bytearray(200 * 2**20); sys.stdin.read()"],
+        stdin=subprocess.PIPE,
+    )
+    try:
+        for _ in range(100):  # until the child holds its 200 MiB
+            if _rss(child.pid) > 200 * 2**20:
+                break
+            time.sleep(0.05)
+        alone = _rss(child.pid)
+        assert alone > 200 * 2**20
+        me = _rss_self_only()
+        assert _rss(os.getpid()) >= 0.9 * (alone + me)
+    finally:
+        child.stdin.close()
+        child.wait()
+
+
+def _rss_self_only() -> int:
+    with open("/proc/self/status") as fh:
+        return next(int(ln.split()[1]) * 1024 for ln in fh if ln.startswith("VmRSS:"))
