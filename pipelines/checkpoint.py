@@ -174,6 +174,11 @@ class StageStore:
             self.keys[stage] = stage_key(self.keys[prev], stage, config)
         return self.keys
 
+    def may_load(self, stage: str) -> bool:
+        """Whether `load` may find a checkpoint of `stage` (resuming, nothing recomputed yet, its folder
+        there; `load` still checks it): what only a recomputed stage needs need not start."""
+        return self.resume and not self._recomputed and stage in self.keys and self.path(stage).is_dir()
+
     def path(self, stage: str) -> Path:
         assert self.folder is not None
         return self.folder / f"{stage}-{_digest(self.keys[stage])[:16]}"

@@ -110,6 +110,11 @@ class BackwardRegistration:
                 os.close(r_in)
                 os.close(w_out)
 
+    @property
+    def submitted(self) -> bool:
+        """Whether `submit` gave it tracks."""
+        return self._tracks is not None
+
     def submit(self, tracks: Tracks) -> None:
         """Start registering `tracks` backwards (in the worker, where there is one)."""
         if not self._cfg.reverse.enabled:

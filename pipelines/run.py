@@ -244,7 +244,9 @@ def _map_recording(
                 store.save("frontend", functools.partial(ckpt.write_tracks, tracks=tracks), frontend_stats)
         else:
             tracks, frontend_stats = loaded
-        backward.submit(tracks)  # before the forward registration renames tracks
+        store.chain(cfg)
+        if not (store.may_load("ba_points") or store.may_load("ba_full")):  # else no backward start
+            backward.submit(tracks)  # before the forward registration renames tracks
         try:
             reg = register(tracks, cfg, timer, progress, store)
         except UnmappableError as exc:
@@ -530,6 +532,7 @@ def _points_ba(
         with timer.stage("reverse_check"):
             if backward is None:
                 backward = BackwardRegistration(cfg, worker=False)
+            if not backward.submitted:  # a checkpoint that was to be resumed from did not load
                 backward.submit(tracks)
             with progress("keyframes (backward)") as cb:
                 back = backward.result(cb)

@@ -439,3 +439,36 @@ def test_store_writes_atomically_and_an_interrupted_write_leaves_nothing(tmp_pat
     assert ckpt.StageStore(tmp_path, "k", resume=False).load("frontend", ckpt.read_tracks) is None
     again.skip("registration")
     assert again.load("frontend", ckpt.read_tracks) is None
+
+
+@pytest.mark.parametrize("latest", ["ba_points", "ba_full"])
+def test_a_run_resumed_after_the_points_ba_starts_no_backward_registration(
+    latest, reference, tmp_path, monkeypatch
+):
+    """The backward registration only serves the points BA: a run resumed after it does not start one
+    (nor a worker's work beside the resumed stages), and the map is the uninterrupted run's."""
+    out = tmp_path / "out"
+    _copy(reference, out, ckpt.STAGES[: ckpt.STAGES.index(latest) + 1])
+    submitted = []
+    real_submit = registration.BackwardRegistration.submit
+    monkeypatch.setattr(
+        registration.BackwardRegistration,
+        "submit",
+        lambda self, t: submitted.append(1) or real_submit(self, t),
+    )
+    assert _run(out) == 0
+    assert _summary(out)["resumed"]["stage"] == latest
+    assert submitted == []
+    _assert_same_map(reference, out)
+
+
+def test_a_checkpoint_that_does_not_load_gets_its_backward_registration_late(reference, tmp_path):
+    """A points-BA checkpoint that was to be resumed from but is unreadable: the stage is recomputed,
+    with the backward registration submitted then, and the map is the uninterrupted run's."""
+    out = tmp_path / "out"
+    _copy(reference, out, ckpt.STAGES[: ckpt.STAGES.index("ba_points") + 1])
+    (_stage_dir(out, "ba_points") / "stage.json").write_text("not json")
+    assert _run(out) == 0
+    assert _summary(out)["resumed"]["stage"] == "registration"
+    assert _summary(out)["reverse_check"]["posed_backward"] > 0
+    _assert_same_map(reference, out)
