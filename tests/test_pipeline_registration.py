@@ -28,12 +28,18 @@ def recording():
     return tracks, invert(T_cw)
 
 
+@pytest.fixture
+def two_cores(monkeypatch):
+    """The worker runs even on a one-core machine (where the run would not start it)."""
+    monkeypatch.setattr(registration, "_cores", lambda: 2)
+
+
 def _poses(result) -> tuple[list[int], np.ndarray]:
     frames = sorted(result.poses)
     return frames, np.stack([result.poses[f] for f in frames])
 
 
-def test_the_worker_registers_the_tracks_as_this_process_does(recording) -> None:
+def test_the_worker_registers_the_tracks_as_this_process_does(two_cores, recording) -> None:
     tracks, truth = recording
     cfg = RunConfig()
     with BackwardRegistration(cfg) as worker:
@@ -53,7 +59,7 @@ def test_the_worker_registers_the_tracks_as_this_process_does(recording) -> None
     assert in_worker.summary()["in_worker"] is True and in_worker.summary()["registration_s"] > 0
 
 
-def test_the_workers_log_reaches_this_process(recording, caplog) -> None:
+def test_the_workers_log_reaches_this_process(two_cores, recording, caplog) -> None:
     tracks, _ = recording
     with BackwardRegistration(RunConfig()) as worker, caplog.at_level(logging.INFO, logger="papl_mapper"):
         worker.submit(tracks)
@@ -61,7 +67,7 @@ def test_the_workers_log_reaches_this_process(recording, caplog) -> None:
     assert any(r.getMessage().startswith("backward registration: initialised") for r in caplog.records)
 
 
-def test_a_worker_that_dies_leaves_the_registration_to_this_process(recording) -> None:
+def test_a_worker_that_dies_leaves_the_registration_to_this_process(two_cores, recording) -> None:
     tracks, _ = recording
     with BackwardRegistration(RunConfig()) as worker:
         assert worker._proc is not None
@@ -102,7 +108,9 @@ def test_the_worker_runs_under_a_script_without_a_main_guard(tmp_path) -> None:
     script = tmp_path / "script.py"
     script.write_text(
         "from papl_mapper.pipelines.config import RunConfig\n"
+        "from papl_mapper.pipelines import registration\n"
         "from papl_mapper.pipelines.registration import BackwardRegistration\n"
+        "registration._cores = lambda: 2  # as the two_cores fixture\n"
         "from tests.test_mapping_incremental import make_tracks\n"
         "tracks, _, _ = make_tracks(n_frames=30, noise_px=0.3)\n"
         "with BackwardRegistration(RunConfig()) as worker:\n"
@@ -125,7 +133,7 @@ def test_the_worker_runs_under_a_script_without_a_main_guard(tmp_path) -> None:
     assert "Error" not in out.stderr
 
 
-def test_the_backward_start_is_adjusted_in_the_worker_as_here(recording) -> None:
+def test_the_backward_start_is_adjusted_in_the_worker_as_here(two_cores, recording) -> None:
     tracks, truth = recording
     from papl_mapper.backend import BAConfig, global_ba
     from tests.test_reverse_start import FRAMES, _adjusted_map
@@ -143,7 +151,7 @@ def test_the_backward_start_is_adjusted_in_the_worker_as_here(recording) -> None
     assert np.array_equal(there.points.xyz, here.points.xyz)
 
 
-def test_a_ba_that_fails_in_the_worker_fails_here_too(recording) -> None:
+def test_a_ba_that_fails_in_the_worker_fails_here_too(two_cores, recording) -> None:
     """An error other than the BA's own (here the map check's) makes the run's process run it again,
     which raises it where the caller sees it."""
     from papl_mapper.backend import BAConfig
@@ -186,7 +194,9 @@ def test_the_worker_ends_with_the_run_that_started_it(tmp_path) -> None:
     script.write_text(
         "import os, sys, time\n"
         "from papl_mapper.pipelines.config import RunConfig\n"
+        "from papl_mapper.pipelines import registration\n"
         "from papl_mapper.pipelines.registration import BackwardRegistration\n"
+        "registration._cores = lambda: 2  # as the two_cores fixture\n"
         "from tests.test_mapping_incremental import make_tracks\n"
         "tracks, _, _ = make_tracks(n_frames=150, noise_px=0.3)\n"
         "worker = BackwardRegistration(RunConfig())\n"
