@@ -128,7 +128,7 @@ class BackwardRegistration:
         self._tracks = tracks.reversed()  # a copy: what the forward registration renames stays out
         if self._send is not None:
             data = pickle.dumps((self._cfg, self._tracks), pickle.HIGHEST_PROTOCOL)
-            self._sender = threading.Thread(target=self._write, args=(data,), daemon=True)
+            self._sender = threading.Thread(target=_write, args=(self._send, data), daemon=True)
             self._sender.start()  # the worker may still be importing: do not wait for it here
 
     def result(self, progress: ProgressCallback | None = None) -> BackwardResult:
@@ -187,15 +187,6 @@ class BackwardRegistration:
         _relog(records)
         return answer, seconds
 
-    def _write(self, data: bytes) -> None:
-        """Send `data` to the worker (from the sender thread; a worker that died has closed its end)."""
-        try:
-            assert self._send is not None
-            self._send.write(data)
-            self._send.flush()
-        except (OSError, ValueError, AssertionError):
-            pass
-
     def close(self) -> None:
         """Stop the worker (idempotent); the registration and the BA then run in this process."""
         if self._proc is not None:
@@ -233,6 +224,14 @@ class BackwardRegistration:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+
+def _write(fh: BinaryIO, data: bytes) -> None:
+    """Send `data` to the worker (the sender thread; a worker that died has closed its end, and `close`
+    may close `fh` under it)."""
+    with contextlib.suppress(OSError, ValueError):
+        fh.write(data)
+        fh.flush()
 
 
 def _cores() -> int:
