@@ -96,7 +96,7 @@ class BackwardRegistration:
             try:
                 self._stderr = tempfile.TemporaryFile()
                 self._proc = subprocess.Popen(
-                    [sys.executable, "-m", __name__, str(r_in), str(w_out)],
+                    [sys.executable, "-m", __name__, str(r_in), str(w_out), str(os.getpid())],
                     pass_fds=(r_in, w_out),
                     stdin=subprocess.DEVNULL,
                     stdout=subprocess.DEVNULL,
@@ -247,12 +247,12 @@ def _backward(
     return backward_poses(reversed_tracks, lambda t: register_tracks(t, cfg, progress))
 
 
-def _die_with_parent() -> None:
+def _die_with_parent(parent: int) -> None:
     """Have Linux kill this worker when the run's process ends (killed, out of memory), instead of it
     finishing a registration nobody waits for; elsewhere it ends at its next write or read."""
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    if os.getppid() == 1:  # the run ended before that took effect
+    if os.getppid() != parent:  # the run ended before that took effect (adopted by init or a subreaper)
         os._exit(0)
 
 
@@ -274,12 +274,12 @@ class _Records(logging.Handler):
         self.records.append((record.name, record.levelno, record.getMessage()))
 
 
-def _work(fd_in: int, fd_out: int) -> None:
+def _work(fd_in: int, fd_out: int, parent: int) -> None:
     """The worker process. First (config, reversed tracks) in, (poses, seconds, log records) out, the
     poses None where the registration raised (the run's process then raises it again itself); then,
     until the run closes the pipe, (map, BA config) in, (adjusted map, seconds, log records) out, the
     map a GeometryError or OptimizationError where the BA raised one, None where it raised another."""
-    _die_with_parent()
+    _die_with_parent(parent)
     handler = _Records()
     root = logging.getLogger("papl_mapper")
     root.addHandler(handler)
@@ -316,4 +316,4 @@ def _work(fd_in: int, fd_out: int) -> None:
 
 
 if __name__ == "__main__":
-    _work(int(sys.argv[1]), int(sys.argv[2]))
+    _work(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]))
