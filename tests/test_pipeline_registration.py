@@ -105,27 +105,14 @@ def test_result_before_submit_is_a_programming_error() -> None:
 
 def test_the_worker_runs_under_a_script_without_a_main_guard(tmp_path) -> None:
     """The worker does not import the caller's main script again (as multiprocessing's children do)."""
-    script = tmp_path / "script.py"
-    script.write_text(
-        "from papl_mapper.pipelines.config import RunConfig\n"
-        "from papl_mapper.pipelines import registration\n"
-        "from papl_mapper.pipelines.registration import BackwardRegistration\n"
-        "registration._cores = lambda: 2  # as the two_cores fixture\n"
-        "from tests.test_mapping_incremental import make_tracks\n"
+    out = _run_script(
+        tmp_path,
         "tracks, _, _ = make_tracks(n_frames=30, noise_px=0.3)\n"
         "with BackwardRegistration(RunConfig()) as worker:\n"
         "    worker.submit(tracks)\n"
         "    result = worker.result()\n"
-        "print(result.in_worker, len(result.poses))\n"
-    )
-    root = Path(__file__).resolve().parents[1]
-    out = subprocess.run(
-        [sys.executable, str(script)],
-        capture_output=True,
-        text=True,
-        cwd=root,
+        "print(result.in_worker, len(result.poses))\n",
         timeout=300,
-        env={**os.environ, "PYTHONPATH": str(root)},
     )
     assert out.returncode == 0, out.stderr
     in_worker, n = out.stdout.split()
@@ -192,29 +179,16 @@ def test_the_workers_warnings_are_logged_as_information(caplog) -> None:
 
 def test_the_worker_ends_with_the_run_that_started_it(tmp_path) -> None:
     """A run's process that dies (killed, out of memory) takes its worker with it."""
-    script = tmp_path / "dies.py"
-    script.write_text(
-        "import os, sys, time\n"
-        "from papl_mapper.pipelines.config import RunConfig\n"
-        "from papl_mapper.pipelines import registration\n"
-        "from papl_mapper.pipelines.registration import BackwardRegistration\n"
-        "registration._cores = lambda: 2  # as the two_cores fixture\n"
-        "from tests.test_mapping_incremental import make_tracks\n"
+    out = _run_script(
+        tmp_path,
+        "import os, time\n"
         "tracks, _, _ = make_tracks(n_frames=150, noise_px=0.3)\n"
         "worker = BackwardRegistration(RunConfig())\n"
         "worker.submit(tracks)\n"
         "time.sleep(1.5)  # the worker is registering (about 4 s): it does not wait for a read or write\n"
         "print(worker._proc.pid, flush=True)\n"
-        "os._exit(0)\n"
-    )
-    root = Path(__file__).resolve().parents[1]
-    out = subprocess.run(
-        [sys.executable, str(script)],
-        capture_output=True,
-        text=True,
-        cwd=root,
+        "os._exit(0)\n",
         timeout=120,
-        env={**os.environ, "PYTHONPATH": str(root)},
     )
     pid = int(out.stdout.split()[0])
     for _ in range(20):  # within a second, not when its registration is done
@@ -228,3 +202,25 @@ def test_the_worker_ends_with_the_run_that_started_it(tmp_path) -> None:
         time.sleep(0.05)
     os.kill(pid, 9)
     raise AssertionError("the worker outlived the run's process")
+
+
+def _run_script(tmp_path: Path, body: str, timeout: float) -> subprocess.CompletedProcess:
+    """`body` run as a user's script (its own main module, no main guard) with the worker forced on
+    (as `two_cores`) and `make_tracks`, `RunConfig` and `BackwardRegistration` imported."""
+    script = tmp_path / "script.py"
+    script.write_text(
+        "from papl_mapper.pipelines.config import RunConfig\n"
+        "from papl_mapper.pipelines import registration\n"
+        "from papl_mapper.pipelines.registration import BackwardRegistration\n"
+        "registration._cores = lambda: 2  # as the two_cores fixture\n"
+        "from tests.test_mapping_incremental import make_tracks\n" + body
+    )
+    root = Path(__file__).resolve().parents[1]
+    return subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        cwd=root,
+        timeout=timeout,
+        env={**os.environ, "PYTHONPATH": str(root)},
+    )
