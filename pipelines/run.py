@@ -522,11 +522,9 @@ def _points_ba(
         m, stats.ba_points = _ba(m, cfg, progress, "BA (points)")
     if cfg.rotations.enabled:
         with timer.stage("rotation_check"), progress("BA (points, averaged rotations)") as cb:
-
-            def report(i: int, n: int, cost: float) -> None:
-                cb(i, n, f"cost {cost:.6g}")
-
-            m, check = rotation_checked(m, cfg.ba, cfg.rotations, cfg.max_point_error_px, report, cfg.seed)
+            m, check = rotation_checked(
+                m, cfg.ba, cfg.rotations, cfg.max_point_error_px, _costs(cb), cfg.seed
+            )
             stats.rotation_check = check.as_dict()
     if cfg.reverse.enabled:
         with timer.stage("reverse_check"):
@@ -544,7 +542,7 @@ def _points_ba(
                     cfg.ba,
                     cfg.max_point_error_px,
                     cfg.reverse,
-                    lambda i, n, c: cb(i, n, f"cost {c:.6g}"),
+                    _costs(cb),
                     backward.ba_aside,
                 )
             stats.reverse_check = reverse.as_dict() | back.summary()
@@ -557,6 +555,11 @@ def _points_ba(
         with timer.stage("ba_points"):
             m, stats.ba_points = _ba(m, cfg, progress, "BA (points, completed tracks)")
     return m, stats
+
+
+def _costs(cb: ProgressCallback) -> Callable[[int, int, float], None]:
+    """A BA's per-iteration report (iteration, of, cost) as a progress bar's message."""
+    return lambda i, n, cost: cb(i, n, f"cost {cost:.6g}")
 
 
 def _ba(m: Map, cfg: RunConfig, progress: ProgressFactory, title: str) -> tuple[Map, dict[str, Any]]:
