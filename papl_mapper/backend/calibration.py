@@ -31,6 +31,7 @@ from threadpoolctl import threadpool_limits
 from papl_mapper import geometry as geo
 from papl_mapper.errors import GeometryError
 from papl_mapper.map import Map
+from papl_mapper.rows import unique_rows
 
 log = logging.getLogger(__name__)
 
@@ -269,7 +270,7 @@ def _select(
     err = _reprojection_px(kfs.T_wc, pts.xyz, p_row, k_row, uv, m.camera.fx, m.camera.fy, m.camera)
     ok = err < max_error_px
     p_row, k_row, uv = p_row[ok], k_row[ok], uv[ok]
-    pairs = np.unique(np.stack([p_row, k_row], 1), axis=0)
+    pairs = unique_rows(np.stack([p_row, k_row], 1))
     views = np.bincount(pairs[:, 0], minlength=len(pts))
     keep = np.flatnonzero(views >= config.min_views)
     if len(keep) > config.max_points_per_window:

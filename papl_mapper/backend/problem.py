@@ -16,6 +16,7 @@ from papl_mapper.errors import GeometryError
 from papl_mapper.geometry.lines import line_parallax_deg
 from papl_mapper.geometry.triangulation import clear_of_camera
 from papl_mapper.map import LineState, Map
+from papl_mapper.rows import unique_rows
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +98,7 @@ def _drop(dropped: dict[str, int], key: str, count: int, reason: str) -> None:
 def _distinct_views(owner: np.ndarray, kf: np.ndarray, n: int) -> np.ndarray:
     if len(owner) == 0:
         return np.zeros(n, np.int64)
-    pairs = np.unique(np.stack([owner, kf], 1), axis=0)
+    pairs = unique_rows(np.stack([owner, kf], 1))
     return np.bincount(pairs[:, 0], minlength=n)
 
 

@@ -14,6 +14,7 @@ from papl_mapper.geometry.se3 import project_points
 from papl_mapper.geometry.triangulation import clear_of_camera, observation_planes
 from papl_mapper.map import Axes, Camera, Keyframes, Lines, LineState, Map, Points
 from papl_mapper.mapping.lines import LineEstimates
+from papl_mapper.rows import unique_rows
 from papl_mapper.tracks import Tracks
 
 
@@ -251,7 +252,7 @@ def _views(ids: np.ndarray, obs_ids: np.ndarray) -> np.ndarray:
     """Distinct keyframes observing each id."""
     if len(obs_ids) == 0:
         return np.zeros(len(ids), np.int64)
-    pairs = np.unique(obs_ids, axis=0)
+    pairs = unique_rows(obs_ids)
     return np.bincount(np.searchsorted(ids, pairs[:, 0]), minlength=len(ids))
 
 

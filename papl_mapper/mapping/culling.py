@@ -23,6 +23,7 @@ import numpy as np
 
 from papl_mapper.errors import ConfigError
 from papl_mapper.mapping.incremental import Registration
+from papl_mapper.rows import unique_rows
 from papl_mapper.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -148,7 +149,7 @@ def _line_views(
     sel = np.isin(tracks.line_frame, frames) & np.isin(tracks.line_track, ids[n >= min_frames])
     slot = np.searchsorted(frames, tracks.line_frame[sel])
     ids, row = np.unique(tracks.line_track[sel], return_inverse=True)
-    pairs = np.unique(np.column_stack([row, slot]), axis=0) if len(row) else np.zeros((0, 2), np.int64)
+    pairs = unique_rows(np.column_stack([row, slot])) if len(row) else np.zeros((0, 2), np.int64)
     views = np.bincount(pairs[:, 0], minlength=len(ids))
     order = np.argsort(pairs[:, 1], kind="stable")
     bounds = np.searchsorted(pairs[order, 1], np.arange(len(frames) + 1))

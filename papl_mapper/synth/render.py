@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from papl_mapper.map import Camera
+from papl_mapper.rows import unique_rows
 from papl_mapper.synth.scenes import TILE_TEXELS, Material, Scene
 
 NEAR = 0.05  # near clipping plane in metres
@@ -94,7 +95,7 @@ def texture_canvases(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     frames = np.concatenate(
         [scene.quad_material[:, None], scene.tex_origin, scene.tex_u, scene.tex_v], axis=1
     ).round(6)
-    _, first, canvas_of_quad = np.unique(frames, axis=0, return_index=True, return_inverse=True)
+    _, first, canvas_of_quad = unique_rows(frames, return_index=True, return_inverse=True)
     canvas_of_quad = canvas_of_quad.ravel()
     order = np.argsort(first, kind="stable")  # canvases numbered in the order quads were built
     rank = np.empty_like(order)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from papl_mapper.errors import InputError
+from papl_mapper.rows import unique_rows
 
 #: Quads are rendered in tiles no longer than this many texels, each with its own mip level.
 TILE_TEXELS = 512
@@ -73,7 +74,7 @@ class Scene:
         ends = self.segments[self.segment_axis >= 0].reshape(-1, 3)
         if not len(ends):
             return np.zeros((0, 3))
-        return np.unique(np.round(ends, 6), axis=0)
+        return unique_rows(np.round(ends, 6))
 
     def sample_surface_points(self, n: int, seed: int = 0) -> np.ndarray:
         """(n, 3) points drawn uniformly (by area) on the quads: stand-ins for textured corners."""
