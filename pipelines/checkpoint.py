@@ -451,6 +451,8 @@ def write_map(
             obs_dirs_w=axis_inputs.obs_dirs_w,
             obs_line=axis_inputs.obs_line,
             line_track=axis_inputs.line_track,
+            obs_normals_w=axis_inputs.obs_normals_w,
+            obs_length_px=axis_inputs.obs_length_px,
         )
 
 
@@ -477,5 +479,15 @@ def read_map(
     state = AxisState(a["serial"], a["age"], a["jumps"], vertical, next_serial)
     if len(a["obs_dirs_w"]) != len(a["obs_line"]) or len(state) != len(a["axes_w"]):
         raise ValueError("axes.npz: arrays of different lengths")
-    axis_inputs = AxisInputs(a["axes_w"], state, a["obs_dirs_w"], a["obs_line"], a["line_track"])
+    if a["obs_normals_w"].shape != a["obs_dirs_w"].shape or len(a["obs_length_px"]) != len(a["obs_line"]):
+        raise ValueError("axes.npz: arrays of different lengths")
+    axis_inputs = AxisInputs(
+        a["axes_w"],
+        state,
+        a["obs_dirs_w"],
+        a["obs_line"],
+        a["line_track"],
+        a["obs_normals_w"],
+        a["obs_length_px"],
+    )
     return m, stats, axis_inputs, point_track

@@ -404,7 +404,9 @@ def build_map(
             lines = triangulate_map_lines(tracks, poses, cfg.lines, cfg.seed)
         with timer.stage("axes"):
             anchored = cfg.variant.lines == "anchored"
-            m, axis_inputs = structured_map(tracks, m, lines, upright, cfg.axes, anchored)
+            m, axis_inputs = structured_map(
+                tracks, m, lines, upright, cfg.axes, anchored, cfg.ba.line_sigma_px
+            )
         with timer.stage("ba_full"):
             m, stats.ba = _ba(m, cfg, progress, "BA (points + lines)")
         if cfg.completion.enabled and cfg.completion.after_full_ba:
@@ -429,7 +431,7 @@ def build_map(
         )
     if axis_inputs is not None and cfg.axes.update:
         with timer.stage("axis_update"):
-            changed, stats.axis_update = update_structure(m, axis_inputs, cfg.axes)
+            changed, stats.axis_update = update_structure(m, axis_inputs, cfg.axes, cfg.ba.line_sigma_px)
         if changed:
             with timer.stage("ba_full"):
                 m, stats.ba = _ba(m, cfg, progress, "BA (after axis update)")

@@ -3,12 +3,15 @@
 Per line, the input is the set of vanishing directions it was observed with (rotated to the world
 frame); its evidence for axis j is the mean angle between those directions and the axis. Lines
 beyond a loose gate get weight 0; inside it the likelihood is a zero-mean normal on that angle.
-EM alternates the weights w_kj (E) and the axes' mixing proportions (M).
+EM alternates the weights w_kj (E) and the axes' mixing proportions (M). The vanishing directions
+are per frame; `direction_checked` then takes from each line the axes its segments' back-projection
+planes reject, the paper's gate on the line's own direction where its views decide that direction.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import chdtri  # chi-square quantiles; scipy.stats would add 0.3 s of imports
 
 from papl_mapper.axes.config import AxesConfig
 from papl_mapper.axes.directions import unit_rows
@@ -97,3 +100,45 @@ def associate(
     num = lik * prior[None, :]
     den = num.sum(axis=1, keepdims=True)
     return np.divide(num, den, out=np.zeros_like(num), where=den > 0)
+
+
+def direction_checked(
+    normals_w: np.ndarray,
+    length_px: np.ndarray,
+    obs_line: np.ndarray,
+    weights: np.ndarray,
+    axes: np.ndarray,
+    config: AxesConfig,
+    sigma_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The line-axis `weights` (N, A) without the axes each line's segments reject, renormalised, and
+    the (N,) lines left with none. A line's back-projection planes (unit world normals (K,3) of the
+    observations of line `obs_line`) reject an axis when it lies outside them beyond their noise
+    (chi-square over the line's views at `config.direction_alpha`) and the direction that fits them
+    best lies beyond `config.gate_deg` from it.
+
+    A plane tilts by about sqrt(2) sigma_px / length about the segment (endpoint noise `sigma_px`, the
+    BA's), so weighted by the length a normal's distance from the axis is in pixels. The test is on the
+    axis alone, not against the free fit: where the views barely move across the line, its planes
+    nearly coincide and their noise lies along one direction, which the free fit then absorbs."""
+    weights = np.array(weights, np.float64)
+    unfit = np.zeros(len(weights), bool)
+    if config.direction_alpha <= 0 or len(obs_line) == 0 or len(axes) == 0:
+        return weights, unfit
+    wn = normals_w * length_px[:, None]
+    scatter = np.zeros((len(weights), 3, 3))
+    np.add.at(scatter, obs_line, wn[:, :, None] * wn[:, None, :])
+    views = np.bincount(obs_line, minlength=len(weights))
+    rows = np.flatnonzero((views >= 3) & (weights.sum(axis=1) > 0))
+    if len(rows) == 0:
+        return weights, unfit
+    a = unit_rows(axes, "axes")
+    miss = np.einsum("ai,nij,aj->na", a, scatter[rows], a) / (2.0 * sigma_px**2)  # (n, A)
+    free = np.linalg.eigh(scatter[rows])[1][:, :, 0]  # the direction fitting the planes best
+    angle = np.degrees(np.arccos(np.clip(np.abs(free @ a.T), 0.0, 1.0)))
+    limit = chdtri(views[rows], config.direction_alpha)[:, None]
+    kept = weights[rows] * ~((miss > limit) & (angle > config.gate_deg))
+    total = kept.sum(axis=1, keepdims=True)
+    weights[rows] = np.divide(kept, total, out=np.zeros_like(kept), where=total > 0)
+    unfit[rows] = total[:, 0] == 0
+    return weights, unfit

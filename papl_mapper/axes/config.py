@@ -53,6 +53,10 @@ class AxesConfig:
     """Standard deviation of the zero-mean normal likelihood on the mean angle."""
     em_iterations: int = 10
     """EM iterations (E: weights, M: mixing proportions of the axes)."""
+    direction_alpha: float = 1e-3
+    """A line loses an axis when the back-projection planes of its segments reject it at this
+    significance and the direction they fit lies beyond `gate_deg` from it (the paper's gate on the
+    line's own direction, where its views decide it); with none left it is unanchored. 0: no check."""
 
     # ---- update ------------------------------------------------------------------------------------
     update: bool = True

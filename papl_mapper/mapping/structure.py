@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from papl_mapper.axes import AxesConfig, AxisState, associate, create_axes, remap_weights, update_axes
+from papl_mapper.axes.association import direction_checked
 from papl_mapper.geometry.triangulation import observation_planes
 from papl_mapper.map import Axes, Map
 from papl_mapper.mapping.assemble import assemble_map, refine_direction, set_line_states, vp_directions_w
@@ -134,6 +135,8 @@ class AxisInputs:
     obs_dirs_w: np.ndarray  # (K, 3) world vanishing directions of the line observations
     obs_line: np.ndarray  # (K,) index into line_track
     line_track: np.ndarray  # (M,) sorted track ids of the triangulated lines
+    obs_normals_w: np.ndarray  # (K, 3) their back-projection planes' unit normals (`direction_checked`)
+    obs_length_px: np.ndarray  # (K,) their segments' lengths
 
     def join_lines(self, joined: dict[int, int]) -> None:
         """Line tracks merged into others (track -> the track it joined): their vanishing-direction
@@ -174,7 +177,13 @@ def triangulate_map_lines(
 
 
 def structured_map(
-    tracks: Tracks, m: Map, lines: MapLines, upright: bool, config: AxesConfig, anchored: bool = True
+    tracks: Tracks,
+    m: Map,
+    lines: MapLines,
+    upright: bool,
+    config: AxesConfig,
+    anchored: bool = True,
+    line_sigma_px: float = 1.0,
 ) -> tuple[Map, AxisInputs | None]:
     """The map for the full BA: the keyframes and points of `m` with `lines`, anchored to the principal
     axes found among them (soft or hard association as configured), and what the axis update after
@@ -193,6 +202,8 @@ def structured_map(
     d = est.endpoints_w[:, 1] - est.endpoints_w[:, 0]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     xy = lines.xy[known]
+    normals = observation_planes(lines.T_wc[known], tracks.camera.K, xy)[:, :3]
+    length = np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1)
     structure = find_structure(
         d,
         est.from_vp,
@@ -201,18 +212,35 @@ def structured_map(
         np.array([0.0, 0.0, 1.0]),
         config,
         hard=config.association == "hard",
-        obs_normals_w=observation_planes(lines.T_wc[known], tracks.camera.K, xy)[:, :3],
-        obs_weight=np.linalg.norm(xy[:, 2:] - xy[:, :2], axis=1),
+        obs_normals_w=normals,
+        obs_weight=length,
         min_support_fraction=config.min_support_fraction,
     )
+    associated = int((structure.weights.sum(axis=1) > 0).sum())
+    structure.weights, unfit = direction_checked(
+        normals, length, obs_line, structure.weights, structure.axes.directions, config, line_sigma_px
+    )
+    if unfit.any():
+        log.info(
+            "%d of %d associated lines left unanchored: their segments' planes reject every axis they "
+            "were associated with (axes.direction_alpha)",
+            unfit.sum(),
+            associated,
+        )
     out = assemble_map(tracks, poses, points, est, structure.axes, structure.weights)
     out.metadata = dict(m.metadata)
-    return out, AxisInputs(structure.axes.directions, structure.state, obs_dirs, obs_line, est.track)
+    inputs = AxisInputs(
+        structure.axes.directions, structure.state, obs_dirs, obs_line, est.track, normals, length
+    )
+    return out, inputs
 
 
-def update_structure(m: Map, inputs: AxisInputs, config: AxesConfig) -> tuple[bool, list[str]]:
+def update_structure(
+    m: Map, inputs: AxisInputs, config: AxesConfig, line_sigma_px: float = 1.0
+) -> tuple[bool, list[str]]:
     """After a full BA: adopt, merge or delete the axes of `m` as they moved, and re-associate its lines
-    (in place). Returns whether the axes changed (then the BA is worth running again) and what was done."""
+    (in place; without the axes their segments' planes reject, as when the map was structured).
+    Returns whether the axes changed (then the BA is worth running again) and what was done."""
     upd = update_axes(inputs.axes_w, m.axes.directions, inputs.state, config)
     w = remap_weights(m.lines.axis_weights, upd.index_map, len(upd.axes))
     messages = upd.messages()
@@ -226,6 +254,18 @@ def update_structure(m: Map, inputs: AxisInputs, config: AxesConfig) -> tuple[bo
         config.association == "hard",
     )
     order = np.searchsorted(inputs.line_track, m.lines.ids)
-    m.lines.axis_weights = np.where(fresh[order].sum(1, keepdims=True) > 0, fresh[order], w)
+    weights = np.where(fresh[order].sum(1, keepdims=True) > 0, fresh[order], w)
+    obs_row = np.full(len(inputs.line_track), -1)
+    obs_row[order] = np.arange(len(order))
+    seen = obs_row[inputs.obs_line] >= 0  # observations of lines still in the map
+    m.lines.axis_weights, _ = direction_checked(
+        inputs.obs_normals_w[seen],
+        inputs.obs_length_px[seen],
+        obs_row[inputs.obs_line[seen]],
+        weights,
+        m.axes.directions,
+        config,
+        line_sigma_px,
+    )
     set_line_states(m)
     return bool(upd.adopted or upd.deleted or upd.merged), messages
