@@ -1,8 +1,9 @@
 """Unique rows of an array without numpy's structured (void) view.
 
 `np.unique(a, axis=0)` sorts and compares a structured view of `a`; a Ctrl-C that lands inside those
-comparisons comes out as a TypeError ("Cannot compare structured arrays ..."), which code that catches
-TypeError then swallows. Sorting the columns with `np.lexsort` keeps the interrupt a KeyboardInterrupt.
+comparisons comes out as a TypeError ("Cannot compare structured arrays ..."), so a run ended with
+that error instead of stopping at its checkpoint. Sorting the columns with `np.lexsort` keeps the
+interrupt a KeyboardInterrupt.
 """
 
 from __future__ import annotations

@@ -477,9 +477,12 @@ def read_map(
         a = {k: z[k] for k in z.files}
     vertical, next_serial = (int(v) for v in a["state_ints"])
     state = AxisState(a["serial"], a["age"], a["jumps"], vertical, next_serial)
-    if len(a["obs_dirs_w"]) != len(a["obs_line"]) or len(state) != len(a["axes_w"]):
-        raise ValueError("axes.npz: arrays of different lengths")
-    if a["obs_normals_w"].shape != a["obs_dirs_w"].shape or len(a["obs_length_px"]) != len(a["obs_line"]):
+    if (
+        len(a["obs_dirs_w"]) != len(a["obs_line"])
+        or len(state) != len(a["axes_w"])
+        or a["obs_normals_w"].shape != a["obs_dirs_w"].shape
+        or len(a["obs_length_px"]) != len(a["obs_line"])
+    ):
         raise ValueError("axes.npz: arrays of different lengths")
     axis_inputs = AxisInputs(
         a["axes_w"],

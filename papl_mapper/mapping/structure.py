@@ -182,8 +182,8 @@ def structured_map(
     lines: MapLines,
     upright: bool,
     config: AxesConfig,
-    anchored: bool = True,
-    line_sigma_px: float = 1.0,
+    anchored: bool,
+    line_sigma_px: float,
 ) -> tuple[Map, AxisInputs | None]:
     """The map for the full BA: the keyframes and points of `m` with `lines`, anchored to the principal
     axes found among them (soft or hard association as configured), and what the axis update after
@@ -236,7 +236,7 @@ def structured_map(
 
 
 def update_structure(
-    m: Map, inputs: AxisInputs, config: AxesConfig, line_sigma_px: float = 1.0
+    m: Map, inputs: AxisInputs, config: AxesConfig, line_sigma_px: float
 ) -> tuple[bool, list[str]]:
     """After a full BA: adopt, merge or delete the axes of `m` as they moved, and re-associate its lines
     (in place; without the axes their segments' planes reject, as when the map was structured).
