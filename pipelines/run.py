@@ -405,7 +405,7 @@ def build_map(
         with timer.stage("axes"):
             anchored = cfg.variant.lines == "anchored"
             m, axis_inputs = structured_map(
-                tracks, m, lines, upright, cfg.axes, anchored, cfg.ba.line_sigma_px
+                tracks, m, lines, upright, cfg.axes, anchored, cfg.ba.line_sigma_px, cfg.lines
             )
         with timer.stage("ba_full"):
             m, stats.ba = _ba(m, cfg, progress, "BA (points + lines)")

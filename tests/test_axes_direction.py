@@ -138,3 +138,52 @@ def test_the_axis_update_leaves_rejected_lines_unanchored():
     assert m.lines.axis_weights[rejected].sum() == 0
     assert m.lines.state[rejected] != LineState.ANCHORED
     assert (m.lines.state[anchored[1:]] == LineState.ANCHORED).all()
+
+
+def _views(ends: np.ndarray, baseline_m: float, views: int, along: np.ndarray, seed: int):
+    """Poses (views,4,4) of cameras looking along world +y, spread over `baseline_m` along `along`,
+    and the noisy segments (views,4) they see of the 3D segment `ends` (2,3), 0.3 px noise."""
+    rng = np.random.default_rng(seed)
+    T = np.tile(np.eye(4), (views, 1, 1))
+    T[:, :3, :3] = R_WC
+    T[:, :3, 3] = np.outer(np.linspace(-baseline_m / 2, baseline_m / 2, views), along)
+    X_c = np.einsum("ij,vkj->vki", R_WC.T, ends[None] - T[:, None, :3, 3])
+    uv = X_c[..., :2] / X_c[..., 2:] * K[0, 0] + K[:2, 2]
+    return T, uv.reshape(views, 4) + rng.normal(scale=0.3, size=(views, 4))
+
+
+def test_lines_freed_from_their_axis_are_placed_by_their_own_planes():
+    """A line placed along an axis its planes reject is triangulated afresh from them (to its true
+    direction and place); one its views cannot place (cameras moving along it) is left out; lines
+    not freed are untouched."""
+    from papl_mapper.mapping.lines import LineEstimates, LineInitConfig
+    from papl_mapper.mapping.structure import MapLines, freed_lines
+
+    x = np.array([1.0, 0.0, 0.0])
+    true_dir = _tilted(AXES[1], 40.0, 1, 3)[0]
+    centre = np.array([0.3, 4.0, 0.2])
+    truths = [
+        centre + np.outer([-0.75, 0.75], AXES[1]),  # on its axis, kept as it is
+        centre + np.outer([-0.75, 0.75], true_dir),  # freed: 40 degrees off the axis it was put on
+        np.array([0.0, 3.0, 0.5]) + np.outer([-1.0, 1.0], x),  # freed, but seen only along itself
+    ]
+    tracks, Ts, xys = [], [], []
+    for i, ends in enumerate(truths):
+        T, xy = _views(ends, 1.0, 8, x, i)
+        tracks.append(np.full(8, 10 + i))
+        Ts.append(T)
+        xys.append(xy)
+    placed = np.stack([truths[0], centre + np.outer([-0.75, 0.75], AXES[1]), truths[2]])
+    est = LineEstimates(np.array([10, 11, 12]), placed, np.ones(3, bool), np.zeros(3))
+    lines = MapLines(
+        est, np.concatenate(tracks), np.concatenate(xys), np.concatenate(Ts), np.full((24, 3), np.nan)
+    )
+    out, keep = freed_lines(est, np.array([False, True, True]), lines, K, LineInitConfig())
+    assert keep.tolist() == [True, True, False]
+    assert out.track.tolist() == [10, 11]
+    assert np.array_equal(out.endpoints_w[0], placed[0]) and out.from_vp.tolist() == [True, False]
+    d = out.endpoints_w[1, 1] - out.endpoints_w[1, 0]
+    assert np.degrees(np.arccos(abs(d @ true_dir) / np.linalg.norm(d))) < 5.0  # it was put 40 degrees off
+    off = truths[1] - out.endpoints_w[1, 0]  # the true endpoints' distances to the fitted line:
+    off -= np.outer(off @ d, d) / (d @ d)  # 0.48 m from the line it was placed on
+    assert np.linalg.norm(off, axis=1).max() < 0.1

@@ -152,12 +152,14 @@ def triangulate_lines(
     K: np.ndarray,
     config: LineInitConfig | None = None,
     seed: int = 0,
+    what: str = "line tracks",
 ) -> LineEstimates:
     """Lines from observations grouped by track: poses (n,4,4), segments (n,4), VP directions (n,3).
 
     `vp_dir_w` holds the world vanishing direction each observation was classified to, NaN for
     non-structural ones; a track whose directions agree uses their mean as its direction. `seed`
-    draws the sample of directions the scene's dominant ones are searched in.
+    draws the sample of directions the scene's dominant ones are searched in; `what` names the
+    tracks in the log.
     """
     cfg = config or LineInitConfig()
     # the world directions most observations were classified to: candidates for weakly classified tracks
@@ -206,7 +208,7 @@ def triangulate_lines(
         out_vp.append(from_vp)
         out_rms.append(float(np.sqrt(np.mean(rms**2))))
     if reasons:
-        log.info("line tracks dropped: %s", ", ".join(f"{v} {k}" for k, v in sorted(reasons.items())))
+        log.info("%s dropped: %s", what, ", ".join(f"{v} {k}" for k, v in sorted(reasons.items())))
     return LineEstimates(
         np.array(out_t, np.int64),
         np.array(out_e, np.float64).reshape(-1, 2, 3),

@@ -184,11 +184,15 @@ def structured_map(
     config: AxesConfig,
     anchored: bool,
     line_sigma_px: float,
+    line_config: LineInitConfig,
 ) -> tuple[Map, AxisInputs | None]:
     """The map for the full BA: the keyframes and points of `m` with `lines`, anchored to the principal
     axes found among them (soft or hard association as configured), and what the axis update after
-    the BA needs. Without axes (`anchored` False: every line orthonormal, or a map that could not be
-    turned upright) the lines stay free and the second value is None."""
+    the BA needs. A line whose segments' planes reject every axis it was associated with was placed
+    along a direction its views deny: it is triangulated afresh from those planes, and left out when
+    they cannot place it (`line_config`'s limits). Without axes (`anchored` False: every line
+    orthonormal, or a map that could not be turned upright) the lines stay free and the second value
+    is None."""
     poses = {int(k): T for k, T in zip(m.keyframes.ids, m.keyframes.T_wc, strict=True)}
     points = {int(i): x for i, x in zip(m.points.ids, m.points.xyz, strict=True)}
     est = lines.est
@@ -217,22 +221,52 @@ def structured_map(
         min_support_fraction=config.min_support_fraction,
     )
     associated = int((structure.weights.sum(axis=1) > 0).sum())
-    structure.weights, unfit = direction_checked(
+    weights, unfit = direction_checked(
         normals, length, obs_line, structure.weights, structure.axes.directions, config, line_sigma_px
     )
     if unfit.any():
+        est, keep = freed_lines(est, unfit, lines, tracks.camera.K, line_config)
         log.info(
-            "%d of %d associated lines left unanchored: their segments' planes reject every axis they "
-            "were associated with (axes.direction_alpha)",
+            "%d of %d associated lines unanchored, %d of them left out: their segments' planes reject "
+            "every axis they were associated with (axes.direction_alpha)",
             unfit.sum(),
             associated,
+            (~keep).sum(),
         )
-    out = assemble_map(tracks, poses, points, est, structure.axes, structure.weights)
+        weights = weights[keep]
+        seen = keep[obs_line]
+        obs_dirs, normals, length = obs_dirs[seen], normals[seen], length[seen]
+        obs_line = (np.cumsum(keep) - 1)[obs_line[seen]]
+    out = assemble_map(tracks, poses, points, est, structure.axes, weights)
     out.metadata = dict(m.metadata)
     inputs = AxisInputs(
         structure.axes.directions, structure.state, obs_dirs, obs_line, est.track, normals, length
     )
     return out, inputs
+
+
+def freed_lines(
+    est: LineEstimates, unfit: np.ndarray, lines: MapLines, K: np.ndarray, config: LineInitConfig
+) -> tuple[LineEstimates, np.ndarray]:
+    """`est` with its `unfit` (M,) lines triangulated from their planes alone (they were placed along
+    the vanishing direction their planes reject), and which lines remain (M,): those the planes
+    cannot place are left out."""
+    sel = np.isin(lines.track, est.track[unfit])
+    fresh = triangulate_lines(
+        lines.track[sel],
+        lines.T_wc[sel],
+        lines.xy[sel],
+        np.full((int(sel.sum()), 3), np.nan),
+        K,
+        dataclasses.replace(config, min_vp_fraction=0.0),
+        what="lines off their axis",
+    )
+    i = np.searchsorted(est.track, fresh.track)
+    endpoints, from_vp, rms = est.endpoints_w.copy(), est.from_vp.copy(), est.rms_px.copy()
+    endpoints[i], from_vp[i], rms[i] = fresh.endpoints_w, False, fresh.rms_px
+    keep = ~unfit
+    keep[i] = True
+    return LineEstimates(est.track[keep], endpoints[keep], from_vp[keep], rms[keep]), keep
 
 
 def update_structure(
