@@ -185,3 +185,46 @@ def test_em_gate_on_3d_direction_and_empty_input():
     np.testing.assert_array_equal(associate(packed, axes, n_lines=4), np.zeros((4, 2)))
     with pytest.raises(GeometryError):
         associate(obs, axes, line_dirs_w=dirs[:2])
+
+
+def _atlanta_lines(counts, yaws, n_vertical, rng, stray=0):
+    """Structural lines along the vertical and horizontal yaws (counts lines each, 0.5 deg noise), plus
+    `stray` lines in random horizontal directions; each seen 4 times with its vanishing direction
+    1 deg off: (directions (M,3), structural (M,), obs_dirs (K,3), obs_line (K,))."""
+    truth = [np.array([0.0, 0.0, 1.0])] * n_vertical
+    for yaw, n in zip(yaws, counts, strict=True):
+        truth += [_h(yaw)] * n
+    truth += [_h(y) for y in rng.uniform(0, 180, stray)]
+    truth = np.array(truth)
+    dirs = _perturb(truth, 0.5, rng)
+    obs_line = np.repeat(np.arange(len(dirs)), 4)
+    return dirs, np.ones(len(dirs), bool), _perturb(dirs[obs_line], 1.0, rng), obs_line
+
+
+@pytest.mark.parametrize(
+    ("yaws", "counts"),
+    [((0.0, 35.0, 70.0, 90.0, 125.0, 160.0), (200, 150, 60, 30, 12, 10)), ((0.0, 90.0), (200, 150))],
+)
+def test_every_direction_of_an_atlanta_world_becomes_an_axis(yaws, counts):
+    """Horizontal directions 20-35 degrees apart, seen by very different numbers of lines (a walk faces
+    some facades longer), each become an axis with the default support limits; five stray lines in
+    random directions found none (so a Manhattan scene keeps its two horizontals)."""
+    from papl_mapper.mapping.structure import find_structure
+
+    rng = np.random.default_rng(4)
+    dirs, structural, obs, obs_line = _atlanta_lines(counts, yaws, 150, rng, stray=5)
+    cfg = AxesConfig()
+    s = find_structure(
+        dirs,
+        structural,
+        obs,
+        obs_line,
+        np.array([0.0, 0.0, 1.0]),
+        cfg,
+        min_support_fraction=cfg.min_support_fraction,
+    )
+    axes = s.axes.directions
+    assert len(axes) == 1 + len(yaws)
+    assert line_angle_deg(axes[0], np.array([[0.0, 0.0, 1.0]]))[0] < 0.5
+    err = line_angle_deg(np.array([_h(y) for y in yaws])[:, None], axes[None, 1:]).min(axis=1)
+    assert err.max() < 1.0

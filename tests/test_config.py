@@ -101,7 +101,7 @@ def test_every_axis_setting_is_in_the_axes_section():
     from papl_mapper.pipelines.config import PRESETS, RunConfig
 
     cfg = load_config(RunConfig, None, PRESETS["hard-association"] + PRESETS["no-axis-management"])
-    assert (cfg.axes.association, cfg.axes.update, cfg.axes.min_support_fraction) == ("hard", False, 0.03)
+    assert (cfg.axes.association, cfg.axes.update, cfg.axes.min_support_fraction) == ("hard", False, 0.01)
     for old, new in (
         ("variant.association=hard", "axes.association"),
         ("variant.axis_management=false", "axes.update"),

@@ -40,9 +40,11 @@ class AxesConfig:
     max_new_axes: int = 1
     """Most axes created per call, best (smallest mean angle) first; the paper creates the optimal one."""
 
-    min_support_fraction: float = 0.03
+    min_support_fraction: float = 0.01
     """A new axis needs at least this fraction of the map's structural lines behind it (a whole recording
-    has many lines: a handful of misclassified ones must not found an axis)."""
+    has many lines: a handful of misclassified ones must not found an axis). An Atlanta world's lines
+    split over its horizontal directions, as unevenly as the walk faces them, so this stays low
+    (benchmarks/results/notes.md)."""
 
     # ---- association -------------------------------------------------------------------------------
     association: Literal["soft", "hard"] = "soft"
