@@ -11,7 +11,7 @@ planes reject, the paper's gate on the line's own direction where its views deci
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import chdtri  # chi-square quantiles; scipy.stats would add 0.3 s of imports
+from scipy.special import chdtri  # chi-square quantiles without scipy.stats' much longer import
 
 from papl_mapper.axes.config import AxesConfig
 from papl_mapper.axes.directions import unit_rows

@@ -234,9 +234,8 @@ def structured_map(
             (~keep).sum(),
         )
         weights = weights[keep]
-        seen = keep[obs_line]
+        seen, obs_line = _renumbered(obs_line, np.where(keep, np.cumsum(keep) - 1, -1))
         obs_dirs, normals, length = obs_dirs[seen], normals[seen], length[seen]
-        obs_line = (np.cumsum(keep) - 1)[obs_line[seen]]
     out = assemble_map(tracks, poses, points, est, structure.axes, weights)
     out.metadata = dict(m.metadata)
     inputs = AxisInputs(
@@ -269,6 +268,13 @@ def freed_lines(
     return LineEstimates(est.track[keep], endpoints[keep], from_vp[keep], rms[keep]), keep
 
 
+def _renumbered(obs_line: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which observations (K,) belong to a line that has a row (`row` (M,) per line, -1 where it has
+    none), and those observations' lines as rows."""
+    seen = row[obs_line] >= 0
+    return seen, row[obs_line[seen]]
+
+
 def update_structure(
     m: Map, inputs: AxisInputs, config: AxesConfig, line_sigma_px: float
 ) -> tuple[bool, list[str]]:
@@ -289,13 +295,13 @@ def update_structure(
     )
     order = np.searchsorted(inputs.line_track, m.lines.ids)
     weights = np.where(fresh[order].sum(1, keepdims=True) > 0, fresh[order], w)
-    obs_row = np.full(len(inputs.line_track), -1)
-    obs_row[order] = np.arange(len(order))
-    seen = obs_row[inputs.obs_line] >= 0  # observations of lines still in the map
+    row = np.full(len(inputs.line_track), -1)
+    row[order] = np.arange(len(order))
+    seen, obs_line = _renumbered(inputs.obs_line, row)  # observations of lines still in the map
     m.lines.axis_weights, _ = direction_checked(
         inputs.obs_normals_w[seen],
         inputs.obs_length_px[seen],
-        obs_row[inputs.obs_line[seen]],
+        obs_line,
         weights,
         m.axes.directions,
         config,
