@@ -219,6 +219,22 @@ AREAS: list[tuple[str, dict[str, list[Rows | Keys]]]] = [
                     "real_step4.json",
                 )
             },
+            "synthetic_peers.json": [
+                Rows(
+                    "sequences",
+                    (
+                        "papl.frames_posed",
+                        "papl.ate_rmse_pct_path",
+                        "papl_ablation.points-only.ate_rmse_pct_path",
+                        "colmap.frames_posed",
+                        "colmap.ate_rmse_pct_path",
+                        "papl_on_colmap_frames.ate_rmse_pct_path",
+                        "glomap.frames_posed",
+                        "glomap.ate_rmse_pct_path",
+                        "papl_on_glomap_frames.ate_rmse_pct_path",
+                    ),
+                )
+            ],
             "real_shuffled.json": [
                 Rows(
                     "sequences",
