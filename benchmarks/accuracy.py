@@ -49,7 +49,7 @@ def _commit() -> str:
     return git_commit()
 
 
-def _recording(
+def cached_render(
     cache: Path, scene: str, noise: float, seconds: float, seed: int = 0, frames: bool = False
 ) -> Path:
     """The cached render of one case; with `frames` a separate render that also holds its PNG frames."""
@@ -121,7 +121,7 @@ def main() -> int:
         for noise in (float(n) for n in args.noise.split(","))
     ]
     for scene, noise, seed in cases:
-        folder = _recording(args.cache, scene, noise, args.seconds, seed, frames=args.source == "frames")
+        folder = cached_render(args.cache, scene, noise, args.seconds, seed, frames=args.source == "frames")
         label = f"{scene}#{seed}" if seed else scene
         for variant in args.variants.split(","):
             overrides = PRESETS[variant] + args.set

@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 import cv2
-from accuracy import _recording
+from accuracy import cached_render
 from machine import ROOT
 from real import accuracy, discover
 
@@ -41,7 +41,7 @@ def layout(render: Path, dst: Path) -> Path:
         return dst
     shutil.rmtree(dst, ignore_errors=True)
     images.mkdir(parents=True)
-    cap = cv2.VideoCapture(str(render / "video.mp4"))
+    cap = cv2.VideoCapture(str(render / "video.mp4"), cv2.CAP_FFMPEG)  # as papl-map decodes it
     n = 0
     while True:
         ok, frame = cap.read()
@@ -101,7 +101,7 @@ def main() -> int:
     for scene in args.scenes.split(","):
         for seed in (int(s) for s in args.seeds.split(",")):
             for noise in (float(n) for n in args.noise.split(",")):
-                render = _recording(args.cache, scene, noise, args.seconds, seed)
+                render = cached_render(args.cache, scene, noise, args.seconds, seed)
                 print("sequence", layout(render, data / render.name))
                 names.append(render.name)
     cmd = [sys.executable, str(ROOT / "benchmarks" / "real.py"), "--data", str(data), "--out", str(args.out)]
