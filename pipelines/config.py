@@ -32,8 +32,8 @@ class InputConfig:
     itself (the run's argument) this fixes the frontend's input, so config.toml reproduces the run."""
 
     camera: Path | None = None
-    """Intrinsics file: camera.json, OpenCV YAML/JSON, COLMAP cameras.txt, KITTI calib.txt (none: guessed
-    from `hfov_deg`, with a warning)."""
+    """Intrinsics file: camera.json, OpenCV YAML/JSON, COLMAP cameras.txt, KITTI calib.txt, EuRoC
+    sensor.yaml, Kalibr camchain, ORB-SLAM settings (none: guessed from `hfov_deg`, with a warning)."""
     start_s: float | None = None
     """Start time in seconds from the first frame (none: the first frame)."""
     end_s: float | None = None

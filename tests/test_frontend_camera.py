@@ -102,6 +102,107 @@ def test_kitti_calib(tmp_path):
     assert (cam.width, cam.height) == (1241, 376)
 
 
+EUROC_SENSOR_YAML = """%YAML:1.0
+# General sensor definitions.
+sensor_type: camera
+comment: VI-Sensor cam0 (MT9M034)
+T_BS:
+  cols: 4
+  rows: 4
+  data: [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975,
+         0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768,
+         -0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949,
+         0.0, 0.0, 0.0, 1.0]
+rate_hz: 20
+resolution: [752, 480]
+camera_model: pinhole
+intrinsics: [458.654, 457.296, 367.215, 248.375] #fu, fv, cu, cv
+distortion_model: radial-tangential
+distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
+"""
+EUROC = Camera(
+    752,
+    480,
+    458.654,
+    457.296,
+    367.215,
+    248.375,
+    np.array([-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]),
+)
+
+
+def test_euroc_sensor_yaml(tmp_path):
+    p = tmp_path / "sensor.yaml"
+    p.write_text(EUROC_SENSOR_YAML)
+    _same(read_camera_file(p), EUROC)
+
+
+KALIBR_CAMCHAIN_YAML = """cam0:
+  camera_model: pinhole
+  intrinsics: [458.654, 457.296, 367.215, 248.375]
+  distortion_model: radtan
+  distortion_coeffs: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
+  resolution: [752, 480]
+cam1:
+  camera_model: pinhole
+  intrinsics: [457.587, 456.134, 379.999, 255.238]
+  distortion_model: radtan
+  distortion_coeffs: [0, 0, 0, 0]
+  resolution: [752, 480]
+"""
+ORBSLAM_SETTINGS_YAML = """%YAML:1.0
+Camera.type: "PinHole"
+{p}fx: 458.654
+{p}fy: 457.296
+{p}cx: 367.215
+{p}cy: 248.375
+{p}k1: -0.28340811
+{p}k2: 0.07395907
+{p}p1: 0.00019359
+{p}p2: 1.76187114e-05
+Camera.width: 752
+Camera.height: 480
+Camera.fps: 20
+Camera.RGB: 1
+ORBextractor.nFeatures: 1000
+"""
+
+
+def test_kalibr_camchain_uses_cam0(tmp_path):
+    p = tmp_path / "camchain.yaml"
+    p.write_text(KALIBR_CAMCHAIN_YAML)
+    _same(read_camera_file(p), EUROC)
+
+
+@pytest.mark.parametrize("prefix", ["Camera.", "Camera1."])
+def test_orbslam_settings(tmp_path, prefix):
+    """ORB-SLAM2 settings (`Camera.fx`) and ORB-SLAM3's (`Camera1.fx`, `Camera.type`, the size keys)."""
+    p = tmp_path / "EuRoC.yaml"
+    p.write_text(ORBSLAM_SETTINGS_YAML.format(p=prefix))
+    _same(read_camera_file(p), EUROC)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (
+            EUROC_SENSOR_YAML.replace("radial-tangential", "equidistant"),
+            "equidistant distortion is not supported",
+        ),
+        ("cam0:\n  camera_model: omni\n  intrinsics: [1, 2, 3, 4]\n", "camera model omni"),
+        ('Camera.type: "KannalaBrandt8"\nCamera1.fx: 400\n', "camera type kannalabrandt8"),
+        ("Camera.fx: 400\nCamera.fy: 400\nCamera.cx: 320\n", "without Camera.cy"),
+        (EUROC_SENSOR_YAML.replace("[752, 480]", "[752, -480]"), "not a valid EuRoC"),
+    ],
+)
+def test_dataset_yaml_that_cannot_be_used_names_the_file(tmp_path, text, message):
+    p = tmp_path / "calib.yaml"
+    p.write_text(text)
+    with pytest.raises(InputError, match=message) as err:
+        read_camera_file(p)
+    assert str(p) in str(err.value)
+
+
 def test_unrecognised_and_missing_files(tmp_path):
     p = tmp_path / "cam.txt"
     p.write_text("hello world\n")

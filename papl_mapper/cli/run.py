@@ -38,8 +38,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--camera",
         type=Path,
-        help="intrinsics: camera.json, OpenCV YAML/JSON, COLMAP cameras.txt, "
-        "KITTI calib.txt (default: guessed from hfov_deg, with a warning)",
+        help="intrinsics: camera.json, OpenCV YAML/JSON, COLMAP cameras.txt, KITTI calib.txt, "
+        "EuRoC sensor.yaml, Kalibr camchain, ORB-SLAM settings (default: guessed from hfov_deg, with a "
+        "warning)",
     )
     p.add_argument(
         "--preset",

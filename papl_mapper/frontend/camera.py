@@ -2,7 +2,9 @@
 
 Formats read: our camera.json (`Camera.to_dict`), OpenCV YAML/JSON/XML written by cv2.FileStorage
 (`camera_matrix`, `distortion_coefficients`, optional `image_width`/`image_height`; YAML and JSON
-are parsed in Python, only XML by OpenCV), COLMAP
+are parsed in Python, only XML by OpenCV), the YAML of the datasets' own calibrations (EuRoC's
+`sensor.yaml` and Kalibr's camchain: `intrinsics` fu fv cu cv, radial-tangential distortion,
+`resolution`; ORB-SLAM settings: `Camera.fx` ... or `Camera1.fx` ...), COLMAP
 `cameras.txt` (PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV) and KITTI `calib.txt`
 (P0..P3 or P_rect_XX). Our pixel centres are integers; COLMAP puts the first pixel's centre at
 (0.5, 0.5), so its principal point is shifted by -0.5 on reading.
@@ -225,8 +227,60 @@ def _node_array(node: cv2.FileNode) -> np.ndarray | None:
     return None if mat is None else np.asarray(mat, np.float64)
 
 
+_RADTAN = ("radial-tangential", "radtan", "plumb_bob", "none")
+"""Kalibr's / EuRoC's names of OpenCV's k1 k2 p1 p2 distortion (our model)."""
+
+
+def _read_dataset_yaml(path: Path, data: dict) -> Camera:
+    """EuRoC's sensor.yaml or one camera of a Kalibr camchain: `intrinsics` [fu, fv, cu, cv],
+    `distortion_coefficients` (or `distortion_coeffs`) k1 k2 p1 p2 and `resolution` [w, h]."""
+    model = str(data.get("camera_model", "pinhole")).lower()
+    dist_model = str(data.get("distortion_model", "radial-tangential")).lower()
+    if model != "pinhole" or dist_model not in _RADTAN:
+        raise InputError(
+            f"{path}: camera model {model} with {dist_model} distortion is not supported (a pinhole "
+            "camera with radial-tangential distortion is; undistort the images first)"
+        )
+    try:
+        fu, fv, cu, cv = (float(v) for v in data["intrinsics"])
+        w, h = (_size(v) for v in data.get("resolution", (0, 0)))
+        dist = _first(data, ("distortion_coefficients", "distortion_coeffs"))
+        dist_arr = None if dist is None else np.array(dist, float).ravel()
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{path}: not a valid EuRoC / Kalibr camera file ({exc})") from exc
+    return _camera_from_K(np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1]]), dist_arr, w, h, str(path))
+
+
+def _read_orbslam_yaml(path: Path, data: dict) -> Camera:
+    """An ORB-SLAM2 (`Camera.fx` ...) or ORB-SLAM3 (`Camera1.fx` ..., `Camera.type`) settings file."""
+    prefix = "Camera1." if "Camera1.fx" in data else "Camera."
+    kind = str(data.get("Camera.type", "PinHole")).lower()
+    if kind != "pinhole":
+        raise InputError(f"{path}: camera type {kind} is not supported (a pinhole camera is)")
+    try:
+        f = {k: float(data[prefix + k]) for k in ("fx", "fy", "cx", "cy")}
+        dist = [float(data.get(prefix + k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")]
+        w = _size(data.get("Camera.width", data.get(prefix + "width", 0)))
+        h = _size(data.get("Camera.height", data.get(prefix + "height", 0)))
+    except KeyError as exc:
+        raise InputError(f"{path}: ORB-SLAM settings without {exc.args[0]}") from exc
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{path}: not a valid ORB-SLAM settings file ({exc})") from exc
+    K = np.array([[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1]])
+    return _camera_from_K(K, np.array(dist), w, h, str(path))
+
+
 def _read_mapping(path: Path, data: dict) -> Camera:
-    """camera.json (`fx` ...) or a mapping with a 3x3 `camera_matrix` (plain JSON, OpenCV JSON/YAML)."""
+    """camera.json (`fx` ...), a mapping with a 3x3 `camera_matrix` (plain JSON, OpenCV JSON/YAML), or
+    a dataset's own calibration (EuRoC / Kalibr `intrinsics`, ORB-SLAM `Camera.fx`)."""
+    if "Camera.fx" in data or "Camera1.fx" in data:
+        return _read_orbslam_yaml(path, data)
+    if "fx" not in data and "camera_matrix" not in data and isinstance(data.get("cam0"), dict):
+        log.info("%s: a Kalibr camchain, its cam0 used", path)
+        data = data["cam0"]
+    intrinsics = data.get("intrinsics")
+    if isinstance(intrinsics, list) and len(intrinsics) == 4:
+        return _read_dataset_yaml(path, data)
     if "fx" in data:
         try:
             keys = ("width", "height", "fx", "fy", "cx", "cy", "distortion", "model")
