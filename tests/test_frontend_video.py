@@ -136,6 +136,45 @@ def test_time_range_counts_from_the_first_image_of_a_folder_with_clock_timestamp
     np.testing.assert_allclose([f.timestamp_s for f in frames], stamps[2:7])
 
 
+@pytest.mark.parametrize(
+    "names, times",
+    [
+        # TUM RGB-D: clock seconds with a fraction
+        (
+            [f"{1305031102.175304 + 0.0333 * i:.6f}" for i in range(6)],
+            1305031102.175304 + 0.0333 * np.arange(6),
+        ),
+        # EuRoC / ROS exports: clock nanoseconds
+        (
+            [str(1403636579763555584 + 50_000_000 * i) for i in range(6)],
+            1403636579.763555 + 0.05 * np.arange(6),
+        ),
+    ],
+)
+def test_image_names_that_are_clock_times_time_the_frames(tmp_path, names, times):
+    """A dataset's folder without timestamps.txt keeps its own clock (its ground truth is matched by
+    time), not index / 30 fps."""
+    for i, name in enumerate(names):
+        cv2.imwrite(str(tmp_path / f"{name}.png"), _frame(i))
+    frames = list(open_recording(tmp_path))
+    np.testing.assert_allclose([f.timestamp_s for f in frames], times, rtol=0, atol=2e-6)
+
+
+@pytest.mark.parametrize(
+    "names",
+    [
+        [f"{i:06d}" for i in range(6)],  # frame numbers (KITTI): not times
+        ["1305031102.8", "1305031102.9", "1305031102.10"],  # unpadded: .10 sorts after .9, time goes back
+        [f"{1305031102.5 + 0.1 * i:.6f}" for i in range(5)] + ["frame"],  # not every name a time
+    ],
+)
+def test_image_names_that_are_not_clock_times_leave_the_frame_rate(tmp_path, names):
+    for i, name in enumerate(names):
+        cv2.imwrite(str(tmp_path / f"{name}.png"), _frame(i))
+    frames = list(open_recording(tmp_path))
+    np.testing.assert_allclose([f.timestamp_s for f in frames], np.arange(len(names)) / 30.0)
+
+
 def test_timestamps_by_file_name(tmp_path):
     p = tmp_path / "rgb.txt"
     p.write_text("0.2 b.png\n0.1 a.png\n")

@@ -498,7 +498,8 @@ def open_recording(
 
     step keeps every step-th frame of the time range [start_s, end_s]; max_size bounds the
     longer image side (downscaled with INTER_AREA). For image folders, `fps` (default 30)
-    gives timestamps unless a timestamps file is given or `timestamps.txt` lies in the folder.
+    gives timestamps unless a timestamps file is given, `timestamps.txt` lies in the folder, or the
+    image names are clock times (`name_timestamps`).
     Frames that do not decode are skipped during decoding (`Recording.bad_frames`).
     Raises InputError for a missing path, a file that is not a video, no decodable frame, or
     bad frames leaving fewer than 2 that decode.
@@ -584,6 +585,10 @@ def _open_folder(
             raise InputError(f"{ts_path}: timestamps must increase with the sorted image names")
     elif timestamps is not None:
         raise InputError(f"{ts_path}: timestamps file not found")
+    else:
+        stamps = name_timestamps(files)
+        if stamps is not None:
+            log.info("%s: no timestamps.txt; the image names are the frames' times", path)
     w, h = _folder_size(path, files, cv2.IMREAD_GRAYSCALE if common["gray"] else cv2.IMREAD_COLOR)
     if fps is None:
         fps = float(1.0 / np.median(np.diff(stamps))) if stamps is not None and len(stamps) > 1 else 30.0
@@ -592,6 +597,26 @@ def _open_folder(
     return Recording(
         path, "images", w, h, width, height, fps, n, image_files=files, image_timestamps=stamps, **common
     )
+
+
+_UNIX_SECONDS = re.compile(r"\d{9,}\.\d+")
+"""A name that is a clock time in seconds with a fraction (TUM RGB-D: 1305031102.175304.png)."""
+_NANOSECONDS = re.compile(r"\d{16,}")
+"""A name that is a clock time in nanoseconds (EuRoC, ROS bag exports: 1403636579763555584.png)."""
+
+
+def name_timestamps(files: list[Path]) -> np.ndarray | None:
+    """The frames' times in seconds when every image name is a clock time, as the datasets name them
+    (TUM's seconds, EuRoC's nanoseconds) and they increase in the folder's order; None otherwise: a
+    frame number (000123.png) is not a time, and such a folder is timed by its frame rate."""
+    stems = [f.stem for f in files]
+    if all(_UNIX_SECONDS.fullmatch(s) for s in stems):
+        t = np.array([float(s) for s in stems])
+    elif all(_NANOSECONDS.fullmatch(s) for s in stems):
+        t = np.array([int(s) // 1000 for s in stems], np.float64) * 1e-6  # microseconds: float64-exact
+    else:
+        return None
+    return t if len(t) < 2 or bool(np.all(np.diff(t) > 0)) else None
 
 
 def _folder_size(path: Path, files: list[Path], flags: int) -> tuple[int, int]:
