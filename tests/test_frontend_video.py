@@ -175,6 +175,21 @@ def test_image_names_that_are_not_clock_times_leave_the_frame_rate(tmp_path, nam
     np.testing.assert_allclose([f.timestamp_s for f in frames], np.arange(len(names)) / 30.0)
 
 
+@pytest.mark.parametrize("n_times", [6, 5])
+def test_kitti_times_beside_the_image_folder(tmp_path, n_times):
+    """KITTI's layout (sequences/06/image_0/000000.png, sequences/06/times.txt): its times when they
+    fit the images one to one, else the frame rate."""
+    images = tmp_path / "06" / "image_0"
+    images.mkdir(parents=True)
+    for i in range(6):
+        cv2.imwrite(str(images / f"{i:06d}.png"), _frame(i))
+    times = 0.103798 * np.arange(n_times)
+    (tmp_path / "06" / "times.txt").write_text("".join(f"{t:.6e}\n" for t in times))
+    frames = list(open_recording(images))
+    expected = times if n_times == 6 else np.arange(6) / 30.0
+    np.testing.assert_allclose([f.timestamp_s for f in frames], expected, atol=1e-9)
+
+
 def test_timestamps_by_file_name(tmp_path):
     p = tmp_path / "rgb.txt"
     p.write_text("0.2 b.png\n0.1 a.png\n")

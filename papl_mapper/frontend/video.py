@@ -498,8 +498,8 @@ def open_recording(
 
     step keeps every step-th frame of the time range [start_s, end_s]; max_size bounds the
     longer image side (downscaled with INTER_AREA). For image folders, `fps` (default 30)
-    gives timestamps unless a timestamps file is given, `timestamps.txt` lies in the folder, or the
-    image names are clock times (`name_timestamps`).
+    gives timestamps unless a timestamps file is given, `timestamps.txt` lies in the folder, the
+    image names are clock times (`name_timestamps`), or KITTI's `times.txt` lies beside the folder.
     Frames that do not decode are skipped during decoding (`Recording.bad_frames`).
     Raises InputError for a missing path, a file that is not a video, no decodable frame, or
     bad frames leaving fewer than 2 that decode.
@@ -589,6 +589,8 @@ def _open_folder(
         stamps = name_timestamps(files)
         if stamps is not None:
             log.info("%s: no timestamps.txt; the image names are the frames' times", path)
+        else:
+            stamps = _kitti_times(path, files)
     w, h = _folder_size(path, files, cv2.IMREAD_GRAYSCALE if common["gray"] else cv2.IMREAD_COLOR)
     if fps is None:
         fps = float(1.0 / np.median(np.diff(stamps))) if stamps is not None and len(stamps) > 1 else 30.0
@@ -617,6 +619,25 @@ def name_timestamps(files: list[Path]) -> np.ndarray | None:
     else:
         return None
     return t if len(t) < 2 or bool(np.all(np.diff(t) > 0)) else None
+
+
+def _kitti_times(path: Path, files: list[Path]) -> np.ndarray | None:
+    """The frames' times from `times.txt` beside the folder, as KITTI lays a sequence out
+    (sequences/06/image_0/000000.png, sequences/06/times.txt): one time per image, increasing; None
+    when there is none or it does not fit the images (it was not written for this folder)."""
+    times = path.parent / "times.txt"
+    if not times.is_file():
+        return None
+    try:
+        stamps = read_timestamps(times, [f.name for f in files])
+    except InputError as exc:
+        log.info("%s: not used for the frames' times (%s)", times, exc)
+        return None
+    if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+        log.info("%s: not used for the frames' times (they do not increase)", times)
+        return None
+    log.info("%s: no timestamps.txt; the frames' times are those of %s", path, times)
+    return stamps
 
 
 def _folder_size(path: Path, files: list[Path], flags: int) -> tuple[int, int]:
