@@ -164,6 +164,7 @@ def test_image_names_that_are_clock_times_time_the_frames(tmp_path, names, times
     "names",
     [
         [f"{i:06d}" for i in range(6)],  # frame numbers (KITTI): not times
+        [f"20231205123045{i:03d}" for i in range(6)],  # a date and milliseconds in digits: not Unix time
         ["1305031102.8", "1305031102.9", "1305031102.10"],  # unpadded: .10 sorts after .9, time goes back
         [f"{1305031102.5 + 0.1 * i:.6f}" for i in range(5)] + ["frame"],  # not every name a time
     ],

@@ -601,20 +601,23 @@ def _open_folder(
     )
 
 
-_UNIX_SECONDS = re.compile(r"\d{9,}\.\d+")
-"""A name that is a clock time in seconds with a fraction (TUM RGB-D: 1305031102.175304.png)."""
-_NANOSECONDS = re.compile(r"\d{16,}")
-"""A name that is a clock time in nanoseconds (EuRoC, ROS bag exports: 1403636579763555584.png)."""
+_UNIX_SECONDS = re.compile(r"1\d{9}\.\d+")
+"""A name that is a Unix time in seconds with a fraction, 2001-2033 (TUM RGB-D: 1305031102.175304.png);
+a date written as digits (20231205123045.123) is not one."""
+_UNIX_NANOSECONDS = re.compile(r"1\d{18}")
+"""A name that is a Unix time in nanoseconds, 2001-2033 (EuRoC, ROS bag exports:
+1403636579763555584.png); a date written as digits (20231205123045123) is not one."""
 
 
 def name_timestamps(files: list[Path]) -> np.ndarray | None:
-    """The frames' times in seconds when every image name is a clock time, as the datasets name them
+    """The frames' times in seconds when every image name is a Unix time, as the datasets name them
     (TUM's seconds, EuRoC's nanoseconds) and they increase in the folder's order; None otherwise: a
-    frame number (000123.png) is not a time, and such a folder is timed by its frame rate."""
+    frame number (000123.png) or a date in digits is not one, and such a folder is timed by its frame
+    rate."""
     stems = [f.stem for f in files]
     if all(_UNIX_SECONDS.fullmatch(s) for s in stems):
         t = np.array([float(s) for s in stems])
-    elif all(_NANOSECONDS.fullmatch(s) for s in stems):
+    elif all(_UNIX_NANOSECONDS.fullmatch(s) for s in stems):
         t = np.array([int(s) // 1000 for s in stems], np.float64) * 1e-6  # microseconds: float64-exact
     else:
         return None
