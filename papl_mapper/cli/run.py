@@ -33,7 +33,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "its settings changed). config.toml holds every setting, the camera file and frame range "
         "included: `run --config DIR/config.toml VIDEO` maps the same recording the same way.",
     )
-    p.add_argument("recording", help="video file (anything OpenCV's FFmpeg reads) or a folder of images")
+    p.add_argument(
+        "recording",
+        help="video file (anything OpenCV's FFmpeg reads) or a folder of images, timed by its "
+        "timestamps.txt, else by image names that are Unix times (TUM, EuRoC), else by KITTI's "
+        "times.txt beside it, else at 30 fps",
+    )
     p.add_argument("--out", required=True, type=Path, help="output folder (created if missing)")
     p.add_argument(
         "--camera",
