@@ -24,10 +24,12 @@ import sys
 from pathlib import Path
 
 import cv2
+import numpy as np
 from accuracy import cached_render
 from machine import ROOT
-from real import accuracy, discover
+from real import MAX_TIME_DIFF_S, accuracy, discover
 
+from papl_mapper.eval.trajectory import associate_trajectories
 from papl_mapper.trajectory_io import read_tum
 
 OUT = ROOT / "benchmarks" / "results" / "synthetic_peers.json"
@@ -72,9 +74,8 @@ def on_peer_frames(results: Path, data: Path) -> None:
             rec = entry.get(peer, {})
             if rec.get("status") != "ok" or rec.get("frames_posed", 0) >= papl.get("frames_posed", 0):
                 continue
-            stamps = read_tum(rec["trajectory"]).timestamps
-            rows = [i for i, t in enumerate(est.timestamps) if abs(stamps - t).min() <= 0.01]
-            ours = accuracy(seqs[name], est.subset(rows))
+            _, rows = associate_trajectories(read_tum(rec["trajectory"]), est, MAX_TIME_DIFF_S)
+            ours = accuracy(seqs[name], est.subset(np.sort(rows)))
             entry[f"papl_on_{peer}_frames"] = {"frames": len(rows)} | ours
             print(
                 f"{name}: over the {len(rows)} frames {peer} posed: papl-map "

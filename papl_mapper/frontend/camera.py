@@ -86,6 +86,11 @@ def fit_camera(camera: Camera, width: int, height: int, name: str = "camera") ->
     return scale_camera(camera, width, height)
 
 
+def _K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """The 3x3 intrinsic matrix of focal lengths and principal point (pixels)."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
 def _camera_from_K(K: np.ndarray, dist: np.ndarray | None, width: int, height: int, where: str) -> Camera:
     K = np.asarray(K, np.float64).reshape(3, 3)
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -151,8 +156,7 @@ def read_colmap_cameras(path: Path, camera_id: int | None = None) -> Camera:
     else:  # OPENCV
         fx, fy, cx, cy = p[:4]
         dist[:4] = p[4:8]
-    K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])
-    return _camera_from_K(K, dist, w, h, str(path))
+    return _camera_from_K(_K(fx, fy, cx - 0.5, cy - 0.5), dist, w, h, str(path))
 
 
 def read_kitti_calib(path: Path, key: str | None = None) -> Camera:
@@ -248,7 +252,7 @@ def _read_dataset_yaml(path: Path, data: dict) -> Camera:
         dist_arr = None if dist is None else np.array(dist, float).ravel()
     except (TypeError, ValueError) as exc:
         raise InputError(f"{path}: not a valid EuRoC / Kalibr camera file ({exc})") from exc
-    return _camera_from_K(np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1]]), dist_arr, w, h, str(path))
+    return _camera_from_K(_K(fu, fv, cu, cv), dist_arr, w, h, str(path))
 
 
 def _read_orbslam_yaml(path: Path, data: dict) -> Camera:
@@ -266,8 +270,7 @@ def _read_orbslam_yaml(path: Path, data: dict) -> Camera:
         raise InputError(f"{path}: ORB-SLAM settings without {exc.args[0]}") from exc
     except (TypeError, ValueError) as exc:
         raise InputError(f"{path}: not a valid ORB-SLAM settings file ({exc})") from exc
-    K = np.array([[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1]])
-    return _camera_from_K(K, np.array(dist), w, h, str(path))
+    return _camera_from_K(_K(f["fx"], f["fy"], f["cx"], f["cy"]), np.array(dist), w, h, str(path))
 
 
 def _read_mapping(path: Path, data: dict) -> Camera:

@@ -581,16 +581,14 @@ def _open_folder(
     stamps = None
     if ts_path.exists():
         stamps = read_timestamps(ts_path, [f.name for f in files])
-        if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+        if not _increasing(stamps):
             raise InputError(f"{ts_path}: timestamps must increase with the sorted image names")
     elif timestamps is not None:
         raise InputError(f"{ts_path}: timestamps file not found")
+    elif (stamps := name_timestamps(files)) is not None:
+        log.info("%s: no timestamps.txt; the image names are the frames' times", path)
     else:
-        stamps = name_timestamps(files)
-        if stamps is not None:
-            log.info("%s: no timestamps.txt; the image names are the frames' times", path)
-        else:
-            stamps = _kitti_times(path, files)
+        stamps = _kitti_times(path, files)
     w, h = _folder_size(path, files, cv2.IMREAD_GRAYSCALE if common["gray"] else cv2.IMREAD_COLOR)
     if fps is None:
         fps = float(1.0 / np.median(np.diff(stamps))) if stamps is not None and len(stamps) > 1 else 30.0
@@ -621,7 +619,12 @@ def name_timestamps(files: list[Path]) -> np.ndarray | None:
         t = np.array([int(s) // 1000 for s in stems], np.float64) * 1e-6  # microseconds: float64-exact
     else:
         return None
-    return t if len(t) < 2 or bool(np.all(np.diff(t) > 0)) else None
+    return t if _increasing(t) else None
+
+
+def _increasing(stamps: np.ndarray) -> bool:
+    """Whether the times increase strictly, frame after frame."""
+    return len(stamps) < 2 or bool(np.all(np.diff(stamps) > 0))
 
 
 def _kitti_times(path: Path, files: list[Path]) -> np.ndarray | None:
@@ -636,7 +639,7 @@ def _kitti_times(path: Path, files: list[Path]) -> np.ndarray | None:
     except InputError as exc:
         log.info("%s: not used for the frames' times (%s)", times, exc)
         return None
-    if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+    if not _increasing(stamps):
         log.info("%s: not used for the frames' times (they do not increase)", times)
         return None
     log.info("%s: no timestamps.txt; the frames' times are those of %s", path, times)
