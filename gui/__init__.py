@@ -2,7 +2,8 @@
 
 Public surface:
 - `render_views(map, out_dir, options=None) -> PreviewResult`: isometric/top/front/side PNGs coloured by axis.
-- `write_report(run_dir_or_map, out_path, gt_dir=None, options=None) -> Path`: one self-contained HTML file.
+- `write_report(run_dir_or_map, out_path, gt_dir=None, options=None, previews=None) -> Path`: one
+  self-contained HTML file (`previews`: already rendered ones to embed).
 - The desktop viewer (`papl-map view`): `viewer_window.open_viewer`, with its data path in
   `viewer_scene`, the 2D panel in `viewer_walk`, picking in `viewer_pick` and the scripted-control
   hook in `viewer_control`; Qt is imported only when a window opens.

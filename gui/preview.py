@@ -18,8 +18,10 @@ import math
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -165,18 +167,49 @@ RENDER_MODULES = ("pyvista", "matplotlib", "PIL")
 def find_offscreen_backend(env: dict[str, str] | None = None) -> str:
     """Name the VTK off-screen window class that renders here (EGL, then OSMesa), probed in a subprocess.
 
-    Raises BackendUnavailableError naming the system packages to install when none works.
+    Raises BackendUnavailableError naming the system packages to install when none works. Waits for
+    a search `start_offscreen_probe` began with the same environment instead of probing again.
     """
-    env = dict(os.environ if env is None else env)
+    return _backend_search(_env_key(env)).result()
+
+
+def start_offscreen_probe(env: dict[str, str] | None = None) -> None:
+    """Begin `find_offscreen_backend` in a thread (each probe is a child process) so that previews
+    rendered later find it done; a failure is raised by `find_offscreen_backend`."""
+    _backend_search(_env_key(env))
+
+
+def _env_key(env: dict[str, str] | None) -> tuple[tuple[str, str], ...]:
+    return tuple(sorted((os.environ if env is None else env).items()))
+
+
+@functools.lru_cache(maxsize=8)
+def _backend_search(env_items: tuple[tuple[str, str], ...]) -> Future[str]:
+    """The search for one environment, started once: a Future of the window class."""
+    future: Future[str] = Future()
+
+    def search() -> None:
+        try:
+            future.set_result(_find_backend(dict(env_items)))
+        except BaseException as exc:  # noqa: BLE001 - raised again by whoever waits for it
+            future.set_exception(exc)
+
+    threading.Thread(target=search, name="offscreen-probe", daemon=True).start()
+    return future
+
+
+def _find_backend(env: dict[str, str]) -> str:
     forced = env.get("VTK_DEFAULT_OPENGL_WINDOW")
     candidates = list(BACKENDS)
     if env.get("DISPLAY"):
         candidates.append(("vtkXOpenGLRenderWindow", "X11", "a reachable X server at DISPLAY"))
     if forced and forced not in [c[0] for c in BACKENDS]:
         candidates.insert(0, (forced, forced, "the libraries it needs"))
+    # each probe sets the window class itself: a class set earlier (by `_plotter`) is no new environment
+    probe_env = tuple(sorted((k, v) for k, v in env.items() if k != "VTK_DEFAULT_OPENGL_WINDOW"))
     failures = []
     for window_class, name, _packages in candidates:
-        ok, detail = _probe(window_class, tuple(sorted(env.items())))
+        ok, detail = _probe(window_class, probe_env)
         if ok:  # `detail` is the class VTK really made (it may fall back by itself, e.g. EGL -> OSMesa)
             log.debug("off-screen rendering: asked for %s, got %s", name, detail)
             return detail

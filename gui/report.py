@@ -31,7 +31,7 @@ from papl_mapper.scale.estimate import units_note
 from papl_mapper.trajectory_io import Trajectory, read_tum
 
 from . import plots
-from .preview import PreviewOptions, prepare_scene, render_views
+from .preview import PreviewOptions, PreviewResult, prepare_scene, render_views
 
 log = logging.getLogger(__name__)
 
@@ -550,7 +550,7 @@ def build_report_html(
     source: str | os.PathLike | Map,
     gt_dir: str | os.PathLike | None = None,
     options: ReportOptions | None = None,
-    preview_dir: str | os.PathLike | None = None,
+    previews: PreviewResult | None = None,
 ) -> str:
     """The report as one HTML string (see `write_report`)."""
     options = options or ReportOptions()
@@ -574,7 +574,7 @@ def build_report_html(
     if options.previews:
         try:
             with tempfile.TemporaryDirectory() as tmp:
-                res = render_views(m, preview_dir or tmp, options.preview)
+                res = previews or render_views(m, tmp, options.preview)
                 notes += res.notes
                 prev += (
                     "<div class='grid'>"
@@ -623,10 +623,12 @@ def write_report(
     out_path: str | os.PathLike,
     gt_dir: str | os.PathLike | None = None,
     options: ReportOptions | None = None,
+    previews: PreviewResult | None = None,
 ) -> Path:
-    """Write the self-contained HTML report of a run folder, a `.papl` file or a Map; returns the path."""
+    """Write the self-contained HTML report of a run folder, a `.papl` file or a Map; returns the path.
+    `previews`: the map's previews already rendered (by the run), embedded instead of rendered again."""
     out_path = Path(out_path)
-    text = build_report_html(run_dir_or_map, gt_dir, options)
+    text = build_report_html(run_dir_or_map, gt_dir, options, previews)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_path) as tmp:
         tmp.write_text(text, encoding="utf-8")

@@ -1,5 +1,6 @@
 """Keyframe registration with the run's settings: forward in the run's process, and backward (the
-second start of `mapping/reverse_start.py`) in a worker process beside it.
+second start of `mapping/reverse_start.py`) in a worker process beside it, which then runs other jobs
+of the run beside its own stages (the backward start's BA, the focal check).
 
 gtsam's optimisers hold Python's GIL, so a thread would not run the backward registration beside the
 forward one; a process does, on a second core. The worker is started when the run starts (its
@@ -26,7 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 from types import TracebackType
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, TypeVar
 
 import cv2
 import numpy as np
@@ -43,6 +44,7 @@ from papl_mapper.tracks import Tracks
 log = logging.getLogger(__name__)
 
 ProgressCallback = Callable[[int, int, str], None]
+T = TypeVar("T")
 _PR_SET_PDEATHSIG = 1  # prctl(2)
 _WORKER_NICENESS = 10
 """The worker runs this much nicer than the run: where both want the cores (its imports during the
@@ -75,8 +77,9 @@ class BackwardResult:
 class BackwardRegistration:
     """The recording registered backwards, in a worker process from `submit` (the tracks as the
     frontend made them, before the forward registration renames any) to `result`; then, on request
-    (`ba_aside`), the global BA of the backward start beside the forward start's. A context manager:
-    leaving it stops the worker.
+    (`aside`), jobs beside the run's own stages: the global BA of the backward start beside the
+    forward start's, the focal check beside the frames' poses. A context manager: leaving it stops
+    the worker.
 
     The worker is `python -m papl_mapper.pipelines.registration` with two pipes (pickles each way),
     not a multiprocessing child: those import the caller's main script again, which a script without
@@ -90,6 +93,7 @@ class BackwardRegistration:
         self._recv: BinaryIO | None = None
         self._sender: threading.Thread | None = None
         self._stderr: BinaryIO | None = None
+        self._taking_jobs = False  # the worker answered the registration and waits for jobs
         if worker and cfg.reverse.enabled and cfg.reverse.worker and _cores() > 1:
             r_in, w_in = os.pipe()
             r_out, w_out = os.pipe()
@@ -140,6 +144,7 @@ class BackwardRegistration:
             reply = self._reply()
             if reply is not None and reply[0] is not None:
                 poses, seconds = reply
+                self._taking_jobs = True
                 return BackwardResult(poses, seconds, True)
             self.close()
         t0 = time.perf_counter()
@@ -147,33 +152,41 @@ class BackwardRegistration:
         return BackwardResult(poses, time.perf_counter() - t0, False)
 
     def ba_aside(self, m: Map, ba: BAConfig) -> Callable[[], Map]:
-        """Start the global BA of `m` in the worker (after `result`); what it returns waits for the
-        adjusted map. Without a worker the BA runs in this process when waited for. A
-        GeometryError or OptimizationError of the BA is raised by the wait, as `global_ba` would."""
+        """`aside` of the global BA of `m`: what it returns waits for the adjusted map."""
+        wait = self.aside(global_ba, m, ba, second_start=True)
+        return lambda: wait().map
+
+    def aside(self, fn: Callable[..., T], *args: Any, second_start: bool = False) -> Callable[[], T]:
+        """Start fn(*args) in the worker (one job at a time, after `result`); what it returns waits for
+        fn's answer. Without a worker taking jobs, fn runs in this process when waited for. A
+        GeometryError or OptimizationError of fn is raised by the wait, as fn would; after another
+        error in the worker, fn runs again here. `fn` must be importable by name (pickled).
+        `second_start`: a job of the backward start, whose log is relogged as such (`_relog`)."""
         if self._sender is not None:
             self._sender.join()  # the tracks are through: the pipe is free
             self._sender = None
-        if self._send is not None and self._recv is not None:
+        if self._taking_jobs and self._send is not None and self._recv is not None:
             try:
-                self._send.write(pickle.dumps((m, ba), pickle.HIGHEST_PROTOCOL))
+                self._send.write(pickle.dumps((fn, args), pickle.HIGHEST_PROTOCOL))
                 self._send.flush()
             except OSError:
                 self.close()
             else:
-                return functools.partial(self._adjusted, m, ba)
-        return lambda: global_ba(m, ba).map
+                return functools.partial(self._answer, fn, args, second_start)
+        return lambda: fn(*args)
 
-    def _adjusted(self, m: Map, ba: BAConfig) -> Map:
-        reply = self._reply()
+    def _answer(self, fn: Callable[..., T], args: tuple, second_start: bool) -> T:
+        reply = self._reply(second_start)
         if reply is not None and isinstance(reply[0], (GeometryError, OptimizationError)):
             raise reply[0]
-        if reply is not None and isinstance(reply[0], Map):
+        if reply is not None and reply[0] is not None:
             return reply[0]
         self.close()
-        return global_ba(m, ba).map
+        return fn(*args)
 
-    def _reply(self) -> tuple[Any, float] | None:
-        """The worker's next (answer, seconds), its log records logged here; None when it ended."""
+    def _reply(self, second_start: bool = True) -> tuple[Any, float] | None:
+        """The worker's next (answer, seconds), its log records logged here (as `_relog`); None when it
+        ended."""
         assert self._recv is not None
         try:
             answer, seconds, records = pickle.load(self._recv)
@@ -184,7 +197,7 @@ class BackwardRegistration:
             )
             self.close()
             return None
-        _relog(records)
+        _relog(records, second_start)
         return answer, seconds
 
     def close(self) -> None:
@@ -202,6 +215,7 @@ class BackwardRegistration:
                 with contextlib.suppress(OSError):
                     fh.close()
         self._send = self._recv = None
+        self._taking_jobs = False
         if self._stderr is not None:
             self._stderr.close()
             self._stderr = None
@@ -256,11 +270,15 @@ def _die_with_parent(parent: int) -> None:
         os._exit(0)
 
 
-def _relog(records: list[tuple[str, int, str]]) -> None:
-    """Log the worker's records here, prefixed; its warnings as INFO: they are about the second
-    start (a segment the backward registration left out), not about the map the run writes."""
+def _relog(records: list[tuple[str, int, str]], second_start: bool = True) -> None:
+    """Log the worker's records here. Those of the second start prefixed, its warnings as INFO: they
+    are about the backward start (a segment its registration left out), not about the map the run
+    writes; other jobs' records as they are."""
     for name, level, message in records:
-        logging.getLogger(name).log(min(level, logging.INFO), "backward registration: %s", message)
+        if second_start:
+            logging.getLogger(name).log(min(level, logging.INFO), "backward registration: %s", message)
+        else:
+            logging.getLogger(name).log(level, "%s", message)
 
 
 class _Records(logging.Handler):
@@ -277,8 +295,9 @@ class _Records(logging.Handler):
 def _work(fd_in: int, fd_out: int, parent: int) -> None:
     """The worker process. First (config, reversed tracks) in, (poses, seconds, log records) out, the
     poses None where the registration raised (the run's process then raises it again itself); then,
-    until the run closes the pipe, (map, BA config) in, (adjusted map, seconds, log records) out, the
-    map a GeometryError or OptimizationError where the BA raised one, None where it raised another."""
+    until the run closes the pipe, jobs: (function, arguments) in, (its answer, seconds, log records)
+    out, the answer a GeometryError or OptimizationError where the function raised one, None where
+    it raised another."""
     _die_with_parent(parent)
     handler = _Records()
     root = logging.getLogger("papl_mapper")
@@ -301,16 +320,16 @@ def _work(fd_in: int, fd_out: int, parent: int) -> None:
         reply(poses, t0)
         while True:
             try:
-                m, ba = pickle.load(fin)
+                fn, args = pickle.load(fin)
             except EOFError:
                 return
             t0 = time.perf_counter()
             try:
-                answer: Any = global_ba(m, ba).map
+                answer: Any = fn(*args)
             except (GeometryError, OptimizationError) as exc:
                 answer = exc
-            except Exception:  # noqa: BLE001 - the run's process runs the BA again itself
-                log.debug("the BA failed in the worker", exc_info=True)
+            except Exception:  # noqa: BLE001 - the run's process runs the job again itself
+                log.debug("a job failed in the worker", exc_info=True)
                 answer = None
             reply(answer, t0)
 

@@ -184,6 +184,10 @@ def run(
     progress = progress or _silent
     recording, out = Path(recording), Path(out_dir)
     check_before_work(out, cfg)
+    if cfg.output.render or cfg.output.report:  # the previews' backend probe runs beside the mapping
+        from papl_mapper.gui.preview import start_offscreen_probe
+
+        start_offscreen_probe()
     running_log = out / ".checkpoint" / "log.txt"
     try:
         running_log.parent.mkdir(parents=True, exist_ok=True)
@@ -260,14 +264,8 @@ def _map_recording(
             write_unmapped(out, unmapped_trajectory(tracks.timestamp, exc.T_cw_frames), cfg, summary)
             raise
         m, stats = build_map(tracks, reg, cfg, timer, progress, store, backward)
-        backward.close()
-        focal_check = None
-        if cfg.focal.enabled:
-            with timer.stage("focal_check"):
-                focal = check_focal(m, cfg.focal, cfg.seed)
-            guessed = " (the camera was guessed from hfov_deg)" if cam_src.guessed else ""
-            (log.warning if focal.warn else log.info)("%s%s", focal.message, guessed)
-            focal_check = focal.summary()
+        # the focal check of the map as it is now, in the worker beside the frames' poses
+        focal_wait = backward.aside(check_focal, m, cfg.focal, cfg.seed) if cfg.focal.enabled else None
         m.metadata.update(
             {
                 "units": "arbitrary",
@@ -287,6 +285,14 @@ def _map_recording(
         )
         with timer.stage("trajectory"):
             traj = frame_trajectory(tracks, m, cfg)
+        focal_check = None
+        if focal_wait is not None:
+            with timer.stage("focal_check"):
+                focal = focal_wait()
+            guessed = " (the camera was guessed from hfov_deg)" if cam_src.guessed else ""
+            (log.warning if focal.warn else log.info)("%s%s", focal.message, guessed)
+            focal_check = focal.summary()
+        backward.close()
         with timer.stage("scale"):
             m, traj = scale_from_config(m, traj, cfg.scale, rec.frames)
         segments = segment_maps(tracks, reg, cfg, timer, progress)

@@ -176,17 +176,18 @@ def write_extras(out: Path, m: Map, cfg: RunConfig, progress: Any, segments: lis
         with atomic_path(out / "eval.json") as tmp:
             tmp.write_text(json.dumps(done.evaluation.to_dict(), indent=1))
         add_outputs(out, [out / "eval.json"])
+    rendered = None
     if o.render:
         from papl_mapper.gui.preview import render_views
 
         with progress("previews") as cb:
-            res = render_views(m, out / "previews", progress=cb)
-        done.previews, done.turntable = list(res.paths), res.turntable or None
+            rendered = render_views(m, out / "previews", progress=cb)
+        done.previews, done.turntable = list(rendered.paths), rendered.turntable or None
         add_outputs(out, done.previews + ([done.turntable] if done.turntable else []))
     if o.report:
         from papl_mapper.gui.report import write_report
 
-        done.report = write_report(out, out / "report.html", gt_dir=o.gt)
+        done.report = write_report(out, out / "report.html", gt_dir=o.gt, previews=rendered)
         add_outputs(out, [done.report])
     return done
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import sys
@@ -367,3 +368,23 @@ def test_gui_does_not_import_pyvista_until_rendering():
     code = "import sys, papl_mapper.gui; print('pyvista' in sys.modules, 'vtk' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
+
+
+def test_the_backend_is_probed_once_per_environment(monkeypatch):
+    """A search begun early (`start_offscreen_probe`) is the one the previews wait for, and the window
+    class `_plotter` sets for VTK is no reason to probe again."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "VTK_DEFAULT_OPENGL_WINDOW")}
+    env["PAPL_TEST_PROBE_ENV"] = "once"  # an environment no other test has probed
+    probes = []
+    real = P._probe.__wrapped__
+
+    @functools.lru_cache(maxsize=8)
+    def counted(window_class, env_items):
+        probes.append(window_class)
+        return real(window_class, env_items)
+
+    monkeypatch.setattr(P, "_probe", counted)
+    P.start_offscreen_probe(env)
+    found = P.find_offscreen_backend(env)
+    assert P.find_offscreen_backend({**env, "VTK_DEFAULT_OPENGL_WINDOW": found}) == found
+    assert len(probes) == len(set(probes)) >= 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import json
 from html.parser import HTMLParser
 from pathlib import Path
@@ -397,3 +398,20 @@ def test_the_summary_says_which_start_the_global_ba_kept() -> None:
         "registered backwards (1.5 s): 12 of the 20 keyframes posed, not compared"
     )
     assert _start_checks({}) == [] and _start_checks(None) == []
+
+
+def test_previews_already_rendered_are_embedded_not_rendered_again(tmp_path, monkeypatch):
+    """The run renders its previews once: the report embeds those files, with their notes."""
+    m = building_map()
+    res = preview.render_views(m, tmp_path / "previews", SMALL)
+    res.notes.append("a note of the rendered previews")
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered again")
+
+    monkeypatch.setattr("papl_mapper.gui.report.render_views", no_render)
+    text = write_report(m, tmp_path / "r.html", previews=res).read_text()
+    embedded = [url for tag, attr, url in _parse(text).urls if tag == "img"]
+    for path in res.paths:
+        assert any(base64.b64encode(path.read_bytes()).decode("ascii") in url for url in embedded)
+    assert "a note of the rendered previews" in " ".join(_parse(text).text)

@@ -224,3 +224,27 @@ def _run_script(tmp_path: Path, body: str, timeout: float) -> subprocess.Complet
         timeout=timeout,
         env={**os.environ, "PYTHONPATH": str(root)},
     )
+
+
+def test_a_job_runs_in_the_worker_as_here_and_here_before_the_worker_takes_jobs(two_cores, recording) -> None:
+    """`aside` (the run's focal check): the worker's answer is this process's; before the worker has
+    answered the registration (a run resumed after it) the job runs in this process."""
+    from papl_mapper.backend.calibration import FocalCheckConfig, check_focal
+    from tests.test_reverse_start import FRAMES, _adjusted_map
+
+    tracks, truth = recording
+    m = _adjusted_map(tracks, truth[FRAMES])
+    cfg = FocalCheckConfig()
+    here = check_focal(m, cfg, 0)
+    with BackwardRegistration(RunConfig()) as worker:
+        early = worker.aside(check_focal, m, cfg, 0)
+        assert worker._proc is not None and not worker._taking_jobs
+        assert early().f_estimated == here.f_estimated
+        worker.submit(tracks)
+        assert worker.result().in_worker
+        pid = worker._proc.pid
+        wait = worker.aside(check_focal, m, cfg, 0)
+        there = wait()
+        assert worker._proc is not None and worker._proc.pid == pid  # answered by the worker
+    assert there.f_estimated == here.f_estimated and there.rel_sigma == here.rel_sigma
+    assert there.n_windows == here.n_windows
