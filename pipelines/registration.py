@@ -3,9 +3,9 @@ second start of `mapping/reverse_start.py`) in a worker process beside it, which
 of the run beside its own stages (the backward start's BA, the focal check).
 
 gtsam's optimisers hold Python's GIL, so a thread would not run the backward registration beside the
-forward one; a process does, on a second core. The worker is started when the run starts (its
-imports overlap the frontend), gets the tracks when the frontend has them, and is stopped when the
-run ends, whether or not its poses were used. Where no worker can run (one core, a worker that
+forward one; a process does, on a second core. The worker is forked when the run starts (so it
+imports nothing), gets the tracks when the frontend has them, and is stopped when the run ends,
+whether or not its poses were used. Where no worker can run (one core, a worker that
 died), the backward registration runs in the run's process when its poses are needed, with the
 same answer.
 """
@@ -20,11 +20,11 @@ import logging
 import os
 import pickle
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from types import TracebackType
 from typing import Any, BinaryIO, TypeVar
@@ -81,41 +81,32 @@ class BackwardRegistration:
     forward start's, the focal check beside the frames' poses. A context manager: leaving it stops
     the worker.
 
-    The worker is `python -m papl_mapper.pipelines.registration` with two pipes (pickles each way),
-    not a multiprocessing child: those import the caller's main script again, which a script without
-    a main guard cannot survive."""
+    The worker is this process forked, with two pipes (pickles each way): it has every module the run
+    has (a new interpreter would spend a core's half second importing them while the frontend wants
+    both cores), and it is not a multiprocessing child, which would import the caller's main script
+    again (a spawn child) or run its exit handlers (a fork child's finalisers)."""
 
     def __init__(self, cfg: RunConfig, worker: bool = True) -> None:
         self._cfg = cfg
         self._tracks: Tracks | None = None
-        self._proc: subprocess.Popen | None = None
+        self._proc: _Forked | None = None
         self._send: BinaryIO | None = None
         self._recv: BinaryIO | None = None
         self._sender: threading.Thread | None = None
         self._stderr: BinaryIO | None = None
         self._taking_jobs = False  # the worker answered the registration and waits for jobs
-        if worker and cfg.reverse.enabled and cfg.reverse.worker and _cores() > 1:
+        if worker and cfg.reverse.enabled and cfg.reverse.worker and _cores() > 1 and hasattr(os, "fork"):
             r_in, w_in = os.pipe()
             r_out, w_out = os.pipe()
             try:
                 self._stderr = tempfile.TemporaryFile()
-                self._proc = subprocess.Popen(
-                    [sys.executable, "-m", __name__, str(r_in), str(w_out), str(os.getpid())],
-                    pass_fds=(r_in, w_out),
-                    stdin=subprocess.DEVNULL,
-                    stdout=subprocess.DEVNULL,
-                    stderr=self._stderr,
-                    start_new_session=True,  # Ctrl-C is the run's to handle; leaving it stops the worker
-                )
+                self._proc = _fork_worker(r_in, w_out, (w_in, r_out), self._stderr.fileno())
             except OSError as exc:
                 log.info("no worker process for the backward registration (%s): it runs in this one", exc)
                 os.close(w_in)
                 os.close(r_out)
             else:
                 self._send, self._recv = os.fdopen(w_in, "wb"), os.fdopen(r_out, "rb")
-                with contextlib.suppress(OSError, AttributeError):  # the run's own stages go first
-                    nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + _WORKER_NICENESS)
-                    os.setpriority(os.PRIO_PROCESS, self._proc.pid, nice)
             finally:
                 os.close(r_in)
                 os.close(w_out)
@@ -240,6 +231,67 @@ class BackwardRegistration:
         self.close()
 
 
+class _Forked:
+    """A forked child: the part of subprocess.Popen's interface the worker's owner uses."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        """Its exit code once it has ended (reaped), else None."""
+        if self.returncode is None:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+            if pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self) -> int:
+        """Wait for it to end; its exit code (negative: the signal that ended it)."""
+        if self.returncode is None:
+            _, status = os.waitpid(self.pid, 0)
+            self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def kill(self) -> None:
+        if self.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signal.SIGKILL)
+
+
+def _fork_worker(fd_in: int, fd_out: int, parents_ends: tuple[int, ...], stderr_fd: int) -> _Forked:
+    """Fork the worker (`_work` on the pipes fd_in, fd_out); its standard error goes to stderr_fd."""
+    parent = os.getpid()
+    for stream in (sys.stdout, sys.stderr):  # else the child would write what is buffered a second time
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            stream.flush()
+    pid = os.fork()
+    if pid:
+        return _Forked(pid)
+    code = 0
+    try:
+        os.setsid()  # Ctrl-C is the run's to handle; leaving the run stops the worker
+        for fd in parents_ends:
+            os.close(fd)
+        devnull = os.open(os.devnull, os.O_RDWR)
+        os.dup2(devnull, 0)
+        os.dup2(devnull, 1)
+        os.dup2(stderr_fd, 2)
+        with contextlib.suppress(OSError):  # the run's own stages go first where both want a core
+            os.nice(_WORKER_NICENESS)
+        for logger in [logging.getLogger(), *logging.Logger.manager.loggerDict.values()]:
+            if isinstance(logger, logging.Logger):  # the run's terminal and log file are not the worker's
+                logger.handlers.clear()
+        _work(fd_in, fd_out, parent)
+    except BaseException:  # noqa: BLE001 - the owner reads the last line of standard error
+        code = 1
+        with contextlib.suppress(Exception):
+            traceback.print_exc()
+            sys.stderr.flush()
+    finally:
+        os._exit(code)  # not the run's exit handlers, buffers or finalisers
+
+
 def _write(fh: BinaryIO, data: bytes) -> None:
     """Send `data` to the worker (the sender thread; a worker that died has closed its end, and `close`
     may close `fh` under it)."""
@@ -332,7 +384,3 @@ def _work(fd_in: int, fd_out: int, parent: int) -> None:
                 log.debug("a job failed in the worker", exc_info=True)
                 answer = None
             reply(answer, t0)
-
-
-if __name__ == "__main__":
-    _work(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]))

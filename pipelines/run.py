@@ -184,10 +184,6 @@ def run(
     progress = progress or _silent
     recording, out = Path(recording), Path(out_dir)
     check_before_work(out, cfg)
-    if cfg.output.render or cfg.output.report:  # the previews' backend probe runs beside the mapping
-        from papl_mapper.gui.preview import start_offscreen_probe
-
-        start_offscreen_probe()
     running_log = out / ".checkpoint" / "log.txt"
     try:
         running_log.parent.mkdir(parents=True, exist_ok=True)
@@ -231,7 +227,11 @@ def _map_recording(
     timer = _Timer()
     timer.current = "reading the input"
     store: StageStore | None = None
-    backward = BackwardRegistration(cfg)  # its worker's imports overlap the frontend
+    backward = BackwardRegistration(cfg)  # forked before any thread starts: the fork copies none
+    if cfg.output.render or cfg.output.report:  # the previews' backend probe runs beside the mapping
+        from papl_mapper.gui.preview import start_offscreen_probe
+
+        start_offscreen_probe()
     try:
         i = cfg.input
         rec = open_recording(recording, i.step, i.start_s, i.end_s, i.max_size)
