@@ -7,12 +7,14 @@ which registers the sub-command and sets `func(args) -> int` on it.
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import logging
 import math
 import signal
 import sys
 import threading
+from typing import NoReturn
 
 from papl_mapper import __version__
 from papl_mapper.errors import InputError, PaplError
@@ -60,6 +62,14 @@ class Terminated(KeyboardInterrupt):
 
 def _terminate(signum: int, frame: object) -> None:
     raise Terminated()
+
+
+def entry() -> NoReturn:
+    """The `papl-map` command: `main`, then the exit, without the interpreter's last garbage collection
+    over every object the job made (frozen: the process ends anyway; about 0.1 s of a mapping run)."""
+    code = main()
+    gc.freeze()
+    sys.exit(code)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,5 @@
 """`python -m papl_mapper.cli`."""
 
-import sys
+from papl_mapper.cli import entry
 
-from papl_mapper.cli import main
-
-sys.exit(main())
+entry()
