@@ -132,7 +132,7 @@ class BackwardRegistration:
         if self._tracks is None:
             raise RuntimeError("BackwardRegistration.result before submit")
         if self._recv is not None:
-            reply = self._reply()
+            reply = self._reply(second_start=True)
             if reply is not None and reply[0] is not None:
                 poses, seconds = reply
                 self._taking_jobs = True
@@ -175,7 +175,7 @@ class BackwardRegistration:
         self.close()
         return fn(*args)
 
-    def _reply(self, second_start: bool = True) -> tuple[Any, float] | None:
+    def _reply(self, second_start: bool) -> tuple[Any, float] | None:
         """The worker's next (answer, seconds), its log records logged here (as `_relog`); None when it
         ended."""
         assert self._recv is not None
